@@ -14,8 +14,17 @@ from pathlib import Path
 from firmware_bridge import messages as m
 
 HEADER_PATH = Path(__file__).parent / "firmware" / "carrt_fw" / "src" / "protocol_generated.h"
+SPEC_PATH = Path(__file__).parent / "PROTOCOL.md"
+SPEC_BEGIN = "<!-- BEGIN GENERATED: python -m firmware_bridge.gen_c -->"
+SPEC_END = "<!-- END GENERATED -->"
 
-C_TYPES = {"u8": "uint8_t", "u16": "uint16_t", "u32": "uint32_t", "i16": "int16_t", "i32": "int32_t"}
+C_TYPES = {
+    "u8": "uint8_t",
+    "u16": "uint16_t",
+    "u32": "uint32_t",
+    "i16": "int16_t",
+    "i32": "int32_t",
+}
 
 
 def _snake(name: str) -> str:
@@ -61,7 +70,9 @@ def render() -> str:
     ]
     for enum in (m.State, m.Reason, m.ArmRefusal, m.ConfigResult):
         prefix = "CARRT_" + _snake(enum.__name__).upper()
-        out.append(f"/* {enum.__doc__.strip().splitlines()[0] if enum.__doc__ else enum.__name__} */")
+        out.append(
+            f"/* {enum.__doc__.strip().splitlines()[0] if enum.__doc__ else enum.__name__} */"
+        )
         for e in enum:
             out.append(f"#define {prefix}_{e.name} {e.value}")
         out.append("")
@@ -122,16 +133,58 @@ def render() -> str:
     return "\n".join(out) + "\n"
 
 
+def render_spec_tables() -> str:
+    """Markdown tables of every message, byte offsets included, for PROTOCOL.md."""
+    out = [SPEC_BEGIN, "", f"Protocol hash of these definitions: `0x{m.PROTOCOL_HASH:08X}`.", ""]
+    for msg in m.MESSAGES:
+        size = m.PAYLOAD_SIZES[msg.TYPE]
+        frame = m.HEADER_SIZE + size + m.CRC_SIZE
+        out.append(f"### {msg.__name__} — type `0x{msg.TYPE:02X}`, {msg.DIRECTION}")
+        out.append("")
+        out.append(f"{(msg.__doc__ or '').strip().splitlines()[0]}")
+        out.append(f"Payload {size} bytes, decoded frame {frame} bytes.")
+        out.append("")
+        if not m.fields_of(msg):
+            out.append("No payload.")
+            out.append("")
+            continue
+        out.append("| offset | field | type | meaning |")
+        out.append("|---:|---|---|---|")
+        offset = 0
+        for name, kind, doc in m.fields_of(msg):
+            out.append(f"| {offset} | `{name}` | {kind} | {doc} |")
+            offset += m.KINDS[kind][1]
+        out.append("")
+    for enum in (m.State, m.Reason, m.ArmRefusal, m.ConfigResult):
+        out.append(f"**{enum.__name__}**: " + ", ".join(f"{e.value} `{e.name}`" for e in enum))
+        out.append("")
+    out.append(SPEC_END)
+    return "\n".join(out)
+
+
+def _spliced_spec(text: str) -> str:
+    head, rest = text.split(SPEC_BEGIN, 1)
+    _, tail = rest.split(SPEC_END, 1)
+    return head + render_spec_tables() + tail
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    text = render()
+    header = render()
+    spec = _spliced_spec(SPEC_PATH.read_text())
     if argv == ["--check"]:
-        if not HEADER_PATH.exists() or HEADER_PATH.read_text() != text:
-            print(f"{HEADER_PATH} is out of date: run python -m firmware_bridge.gen_c")
+        stale = [
+            str(path)
+            for path, text in ((HEADER_PATH, header), (SPEC_PATH, spec))
+            if not path.exists() or path.read_text() != text
+        ]
+        if stale:
+            print(f"out of date: {', '.join(stale)}: run python -m firmware_bridge.gen_c")
             return 1
         return 0
-    HEADER_PATH.write_text(text)
-    print(f"wrote {HEADER_PATH}")
+    HEADER_PATH.write_text(header)
+    SPEC_PATH.write_text(spec)
+    print(f"wrote {HEADER_PATH} and the tables in {SPEC_PATH}")
     return 0
 
 

@@ -172,7 +172,9 @@ class Config:
     throttle_forward_us: int = wire("u16", "ESC pulse at throttle +1.0", 2000)
     max_forward: int = wire("u16", "largest forward throttle allowed, 0..10000", 10000)
     max_reverse: int = wire("u16", "largest reverse/brake throttle allowed, 0..10000", 10000)
-    slew_per_s: int = wire("u32", "throttle rise limit in 1/10000 per second (falls are immediate)", 20000)
+    slew_per_s: int = wire(
+        "u32", "throttle rise limit in 1/10000 per second (falls are immediate)", 20000
+    )
     persist: int = wire("u8", "host->mcu: 1 to store in EEPROM/flash; mcu->host: 1 if stored")
 
 
@@ -231,7 +233,9 @@ BY_TYPE: dict[int, type] = {m.TYPE: m for m in MESSAGES}
 
 def fields_of(message_cls: type) -> list[tuple[str, str, str]]:
     """(name, kind, doc) of each wire field, in wire order."""
-    return [(f.name, f.metadata["kind"], f.metadata["doc"]) for f in dataclasses.fields(message_cls)]
+    return [
+        (f.name, f.metadata["kind"], f.metadata["doc"]) for f in dataclasses.fields(message_cls)
+    ]
 
 
 def _struct_for(message_cls: type) -> struct.Struct:

@@ -1,0 +1,104 @@
+"""The Python codec: round trips, hostile byte streams, corruption and resynchronisation."""
+
+from __future__ import annotations
+
+import binascii
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from strategies import any_message, sequence
+
+from firmware_bridge import messages as m
+from firmware_bridge.codec import MAX_FRAME_ENCODED, FrameDecoder, crc16, encode_frame
+
+
+def test_crc_check_value():
+    assert crc16(b"123456789") == 0x29B1
+    assert crc16(b"123456789") == binascii.crc_hqx(b"123456789", 0xFFFF)
+
+
+def test_definitions_fit_the_frame_limit():
+    m.check_definitions()
+    assert len({cls.TYPE for cls in m.MESSAGES}) == len(m.MESSAGES)
+
+
+@given(any_message, sequence)
+def test_every_message_round_trips(message, seq):
+    wire = encode_frame(message, seq)
+    assert wire.count(0) == 1 and wire.endswith(b"\x00"), "only the delimiter may be zero"
+    frames = FrameDecoder().feed(wire)
+    assert len(frames) == 1
+    assert frames[0].message == message
+    assert frames[0].seq == seq
+    assert frames[0].type_id == message.TYPE
+
+
+@given(st.lists(st.tuples(any_message, sequence), min_size=1, max_size=8), st.data())
+def test_arbitrary_chunking_yields_the_same_frames(items, data):
+    stream = b"".join(encode_frame(msg, seq) for msg, seq in items)
+    cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=12)))
+    decoder = FrameDecoder()
+    frames = []
+    for start, end in zip([0, *cuts], [*cuts, len(stream)], strict=True):
+        frames += decoder.feed(stream[start:end])
+    assert [(f.message, f.seq) for f in frames] == items
+    assert decoder.rejected == 0
+
+
+@given(st.lists(st.binary(max_size=300), max_size=20))
+def test_any_byte_stream_never_raises_and_stays_bounded(chunks):
+    decoder = FrameDecoder()
+    for chunk in chunks:
+        for frame in decoder.feed(chunk):
+            # Anything accepted from noise must still be a well-formed message.
+            assert frame.type_id in m.BY_TYPE
+        assert len(decoder._buffer) <= MAX_FRAME_ENCODED
+
+
+def test_a_long_run_without_delimiter_is_an_overrun_then_resyncs():
+    decoder = FrameDecoder()
+    ping = m.Ping(nonce=7)
+    assert decoder.feed(b"\x55" * 10_000) == []
+    assert decoder.feed(b"\x55" * 10_000) == []
+    assert decoder.overruns == 1
+    frames = decoder.feed(b"\x00" + encode_frame(ping, 1))
+    assert [f.message for f in frames] == [ping]
+
+
+@given(any_message, sequence, st.data())
+def test_a_frame_with_any_corrupted_byte_is_never_accepted(message, seq, data):
+    wire = bytearray(encode_frame(message, seq))
+    index = data.draw(st.integers(0, len(wire) - 2), label="index")  # not the delimiter
+    new = data.draw(st.integers(0, 255).filter(lambda b: b != wire[index]), label="value")
+    wire[index] = new
+    decoder = FrameDecoder()
+    frames = decoder.feed(bytes(wire))
+    assert frames == []
+    assert decoder.rejected >= 1
+
+
+@given(st.binary(max_size=200), any_message, sequence)
+def test_after_garbage_the_next_valid_frame_is_received(garbage, message, seq):
+    decoder = FrameDecoder()
+    # The sender's leading delimiter ends whatever partial frame the garbage left open.
+    frames = decoder.feed(garbage + b"\x00" + encode_frame(message, seq))
+    assert frames[-1].message == message
+    assert frames[-1].seq == seq
+
+
+def test_wrong_length_and_unknown_type_are_counted_as_bad_length():
+    from firmware_bridge.codec import frame_bytes
+
+    decoder = FrameDecoder()
+    assert decoder.feed(frame_bytes(m.Ping.TYPE, 0, b"\x01\x02\x03")) == []
+    assert decoder.feed(frame_bytes(0xEE, 0, b"")) == []
+    assert decoder.bad_length == 2
+    assert decoder.bad_crc == 0
+
+
+def test_oversized_frames_are_refused_at_encode_time():
+    from firmware_bridge.codec import frame_bytes
+
+    with pytest.raises(ValueError, match="exceeds"):
+        frame_bytes(0x10, 0, bytes(100))
