@@ -1,0 +1,49 @@
+"""`make bench`: run every bench/bench_*.py, print its table, write bench/results/*.json.
+
+Each module exposes ``run() -> dict``. Results carry the machine and date so the README's
+table can say where its numbers came from.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import importlib
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).parent
+RESULTS = HERE / "results"
+
+
+def machine() -> dict:
+    return {
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    names = sorted(p.stem for p in HERE.glob("bench_*.py"))
+    parser = argparse.ArgumentParser(prog="python -m bench")
+    parser.add_argument("only", nargs="*", help=f"subset of {', '.join(names)}")
+    args = parser.parse_args(argv)
+    RESULTS.mkdir(exist_ok=True)
+    for name in args.only or names:
+        module = importlib.import_module(f"bench.{name}")
+        print(f"== {name}", flush=True)
+        result = {"machine": machine(), **module.run()}
+        path = RESULTS / f"{name}.json"
+        path.write_text(json.dumps(result, indent=2) + "\n")
+        print(f"   -> {path}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

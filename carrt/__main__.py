@@ -1,0 +1,5 @@
+import sys
+
+from carrt.cli import main
+
+sys.exit(main())

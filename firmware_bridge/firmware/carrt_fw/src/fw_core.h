@@ -1,0 +1,94 @@
+/* The microcontroller's safety core: the last word on what reaches the servo and the ESC.
+ *
+ * Portable C99, no dynamic allocation, no globals, no hidden clock: all state lives in a
+ * caller-provided fw_core_t, hardware goes through fw_hal_t, and the current time (uint32 ms,
+ * wrapping) is an argument of every call. The Arduino sketch calls fw_core_rx() with the bytes
+ * it read and fw_core_tick() every loop(); the host harness does the same from Python tests.
+ *
+ * States: DISARMED (boot) -> ARMED on a 0->1 edge of the ARM flag with neutral throttle and
+ * stopped wheels; ARMED -> FAILSAFE on link timeout (200 ms), stale decision (300 ms) or stall
+ * (500 ms); any state -> ESTOP (latched) on the e-stop flag; ESTOP/FAILSAFE -> DISARMED only on
+ * an explicit CLEAR (with ESTOP and ARM clear). Outputs are neutral in every state but ARMED. */
+#ifndef CARRT_FW_CORE_H
+#define CARRT_FW_CORE_H
+
+#include <stdint.h>
+
+#include "fw_frame.h"
+#include "fw_hal.h"
+#include "protocol_generated.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define FW_LINK_TIMEOUT_MS 200u
+#define FW_DECISION_STALE_MS 300u
+#define FW_STALL_MS 500u
+#define FW_WHEELS_STOPPED_MS 100u
+#define FW_TELEMETRY_PERIOD_MS 20u
+#define FW_ARM_THROTTLE_MAX 200     /* |throttle| <= 2 % counts as neutral for arming */
+#define FW_STALL_THROTTLE 1500      /* applied throttle above 15 % forward can stall */
+
+/* Persistent config blob: magic u16, version u8, config payload, CRC u16 (all LE). */
+#define FW_STORAGE_MAGIC 0xCA27u
+#define FW_STORAGE_VERSION 1u
+#define FW_STORAGE_SIZE (2u + 1u + CARRT_MSG_CONFIG_SIZE + 2u)
+
+typedef struct fw_core {
+  fw_hal_t hal;
+  fw_rx_t rx;
+  carrt_config_t config; /* config.persist: 1 when it came from / was written to storage */
+  uint32_t boot_id;
+  uint8_t state;
+  uint8_t reason;
+  uint8_t arm_refusal;
+  uint8_t prev_arm;      /* ARM bit of the previous accepted COMMAND (1 after boot) */
+  uint8_t have_command;  /* a COMMAND was accepted since boot */
+  uint8_t stall_timing;  /* applied throttle is above the stall threshold */
+  uint16_t tx_seq;
+  uint16_t last_seq;
+  uint32_t decision_id;
+  int16_t target_steer;     /* last commanded, clamped to +-10000 */
+  int16_t target_throttle;  /* last commanded, clamped to [-max_reverse, max_forward] */
+  int16_t applied_throttle; /* after the slew limit; 0 unless ARMED */
+  uint16_t slew_rem;        /* sub-unit remainder of the slew (units * ms, < 1000) */
+  uint16_t steer_us;        /* pulses last written to the HAL */
+  uint16_t throttle_us;
+  int32_t encoder;          /* encoder count last observed */
+  uint32_t last_tick_ms;
+  uint32_t last_command_ms;
+  uint32_t decision_change_ms;
+  uint32_t encoder_change_ms;
+  uint32_t stall_since_ms;
+  uint32_t telemetry_due_ms;
+} fw_core_t;
+
+/* Boot: defaults or stored config, neutral outputs, DISARMED(BOOT), HELLO sent. The HAL struct
+ * is copied. */
+void fw_core_init(fw_core_t *core, const fw_hal_t *hal, uint32_t boot_id, uint32_t now_ms);
+
+/* Feed bytes read from the serial port; frames are handled as soon as they complete. */
+void fw_core_rx(fw_core_t *core, const uint8_t *data, uint16_t len, uint32_t now_ms);
+
+/* Call often (every loop, ideally about 1 ms): timeouts, slew, stall check, telemetry. */
+void fw_core_tick(fw_core_t *core, uint32_t now_ms);
+
+/* Is this config acceptable (pulse ranges, centre between endpoints, limits, slew)? */
+uint8_t fw_config_valid(const carrt_config_t *config);
+void fw_config_defaults(carrt_config_t *config);
+
+uint8_t fw_core_state(const fw_core_t *core);
+uint8_t fw_core_reason(const fw_core_t *core);
+uint8_t fw_core_arm_refusal(const fw_core_t *core);
+uint16_t fw_core_steer_us(const fw_core_t *core);
+uint16_t fw_core_throttle_us(const fw_core_t *core);
+int16_t fw_core_applied_throttle(const fw_core_t *core);
+const fw_rx_t *fw_core_rx_stats(const fw_core_t *core);
+const carrt_config_t *fw_core_config(const fw_core_t *core);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* CARRT_FW_CORE_H */

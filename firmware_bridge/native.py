@@ -1,0 +1,284 @@
+"""The firmware's C core, built on this machine and driven from Python through ctypes.
+
+Tests and the simulator's virtual microcontroller run the very C code that is flashed onto the
+board, not a Python re-implementation of it, so a safety rule can only be verified once. The
+library is compiled on demand with the same strict warnings the board build should pass, and
+cached under a hash of its sources and flags: editing a .c file rebuilds it, nothing else does.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import subprocess
+import tempfile
+import threading
+from pathlib import Path
+
+from firmware_bridge import messages as m
+
+_HERE = Path(__file__).resolve().parent
+FIRMWARE_DIR = _HERE / "firmware"
+CORE_SRC = FIRMWARE_DIR / "carrt_fw" / "src"
+HOST_SRC = FIRMWARE_DIR / "host"
+SOURCES = (CORE_SRC / "fw_frame.c", CORE_SRC / "fw_core.c", HOST_SRC / "fw_host.c")
+HEADERS = (
+    CORE_SRC / "fw_hal.h",
+    CORE_SRC / "fw_frame.h",
+    CORE_SRC / "fw_core.h",
+    CORE_SRC / "protocol_generated.h",
+)
+
+CC = "gcc"
+BASE_FLAGS = ("-std=c99", "-fPIC", "-shared", "-Wall", "-Wextra", "-Werror", "-Wshadow")
+RELEASE_FLAGS = ("-O2",)
+SANITIZE_FLAGS = (
+    "-fsanitize=address,undefined",
+    "-fno-sanitize-recover=all",
+    "-fno-omit-frame-pointer",
+    "-O1",
+    "-g",
+)
+
+TX_BUFFER = 8192  # the harness's serial TX capacity (FWH_TX_CAPACITY)
+MAX_ENCODED_FRAME = 66  # FW_FRAME_MAX_ENCODED: 64 decoded bytes -> 65 COBS bytes + 0x00
+
+
+class FirmwareBuildError(RuntimeError):
+    """The C core did not compile; the message carries the compiler's own output."""
+
+
+class SanitizerRuntimeMissing(RuntimeError):
+    """The sanitized build was asked for in a process without the ASan runtime preloaded."""
+
+
+def _build_dir() -> Path:
+    # The package folder when it is writable (a checkout), else a per-user cache (an install).
+    candidates = [_HERE / "_build", Path.home() / ".cache" / "carrt"]
+    for path in candidates:
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            continue
+        if os.access(path, os.W_OK):
+            return path
+    raise FirmwareBuildError(f"no writable build directory among {candidates}")
+
+
+def _flags(sanitize: bool) -> tuple[str, ...]:
+    return BASE_FLAGS + (SANITIZE_FLAGS if sanitize else RELEASE_FLAGS)
+
+
+_built: dict[bool, Path] = {}
+_build_lock = threading.Lock()
+
+
+def build_library(sanitize: bool = False) -> Path:
+    """Path of the compiled harness library, compiling it first if its sources changed.
+
+    The output is written under a temporary name and renamed into place, so several pytest
+    processes may build at once and none ever loads a half-written file.
+    """
+    with _build_lock:
+        if sanitize in _built and _built[sanitize].exists():
+            return _built[sanitize]
+        flags = _flags(sanitize)
+        digest = hashlib.sha256()
+        for path in SOURCES + HEADERS:
+            digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+        digest.update(" ".join((CC, *flags)).encode())
+        name = f"libcarrt_fw-{digest.hexdigest()[:16]}{'-san' if sanitize else ''}.so"
+        out_dir = _build_dir()
+        target = out_dir / name
+        if not target.exists():
+            fd, tmp_name = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=out_dir)
+            os.close(fd)
+            cmd = [CC, *flags, f"-I{CORE_SRC}", *map(str, SOURCES), "-o", tmp_name]
+            try:
+                result = subprocess.run(cmd, capture_output=True, text=True, check=False)
+            except OSError as exc:
+                os.unlink(tmp_name)
+                raise FirmwareBuildError(f"cannot run {CC}: {exc}") from exc
+            if result.returncode != 0:
+                os.unlink(tmp_name)
+                raise FirmwareBuildError(
+                    f"building the firmware core failed ({' '.join(cmd)}):\n{result.stderr}"
+                )
+            os.chmod(tmp_name, 0o755)  # mkstemp made it private; the cache may be shared
+            os.replace(tmp_name, target)
+        _built[sanitize] = target
+        return target
+
+
+def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
+    c = ctypes
+    u8p = c.POINTER(c.c_uint8)
+    signatures = {
+        "fwh_size": (c.c_size_t, []),
+        "fwh_create": (None, [c.c_void_p]),
+        "fwh_boot": (None, [c.c_void_p, c.c_uint32, c.c_uint32]),
+        "fwh_rx": (None, [c.c_void_p, c.c_char_p, c.c_size_t, c.c_uint32]),
+        "fwh_tick": (None, [c.c_void_p, c.c_uint32]),
+        "fwh_tx_take": (c.c_size_t, [c.c_void_p, u8p, c.c_size_t]),
+        "fwh_set_encoder": (None, [c.c_void_p, c.c_int32]),
+        "fwh_pwm_us": (c.c_uint16, [c.c_void_p, c.c_uint8]),
+        "fwh_state": (c.c_uint8, [c.c_void_p]),
+        "fwh_reason": (c.c_uint8, [c.c_void_p]),
+        "fwh_arm_refusal": (c.c_uint8, [c.c_void_p]),
+        "fwh_counters": (None, [c.c_void_p, c.POINTER(c.c_uint16)]),
+        "fwh_storage_size": (c.c_size_t, []),
+        "fwh_storage_get": (None, [c.c_void_p, u8p]),
+        "fwh_storage_set": (None, [c.c_void_p, u8p]),
+        "fwh_protocol_hash": (c.c_uint32, []),
+        "fwh_payload_size": (c.c_int, [c.c_uint8]),
+        "fwh_proto_roundtrip": (c.c_int, [c.c_uint8, c.c_char_p, c.c_size_t, u8p]),
+        "fwh_encode_frame": (c.c_size_t, [c.c_uint8, c.c_uint16, c.c_char_p, c.c_size_t, u8p]),
+        "fwh_crc16": (c.c_uint16, [c.c_char_p, c.c_size_t]),
+    }
+    for name, (restype, argtypes) in signatures.items():
+        fn = getattr(lib, name)
+        fn.restype = restype
+        fn.argtypes = argtypes
+    return lib
+
+
+_libs: dict[bool, ctypes.CDLL] = {}
+
+
+def load_library(sanitize: bool = False) -> ctypes.CDLL:
+    """The loaded harness. The sanitized build only loads into a process started with the
+    ASan runtime preloaded (see tests/test_firmware_sanitizers.py)."""
+    with _build_lock:
+        lib = _libs.get(sanitize)
+    if lib is None:
+        # Without the runtime preloaded, ASan would abort the whole interpreter on dlopen.
+        if sanitize and not hasattr(ctypes.CDLL(None), "__asan_init"):
+            raise SanitizerRuntimeMissing(
+                "the sanitized firmware needs the ASan runtime loaded first: run Python with "
+                "LD_PRELOAD=$(gcc -print-file-name=libasan.so) ASAN_OPTIONS=detect_leaks=0"
+            )
+        lib = _declare(ctypes.CDLL(str(build_library(sanitize))))
+        with _build_lock:
+            lib = _libs.setdefault(sanitize, lib)
+    return lib
+
+
+def _ms(now_ms: int) -> int:
+    # The board's clock is a wrapping uint32 of milliseconds; callers may pass any int.
+    return int(now_ms) & 0xFFFFFFFF
+
+
+class FirmwareCore:
+    """One simulated board: the C core with in-memory PWM, encoder, serial and storage.
+
+    Nothing happens until ``boot``; the storage (the board's EEPROM) survives every later
+    ``boot``, while RAM state and the encoder count do not.
+    """
+
+    def __init__(self, *, sanitize: bool = False) -> None:
+        self._lib = load_library(sanitize)
+        words = (self._lib.fwh_size() + 7) // 8  # uint64 cells: 8-byte alignment for the struct
+        self._mem = (ctypes.c_uint64 * words)()
+        self._h = ctypes.cast(self._mem, ctypes.c_void_p)
+        self._lib.fwh_create(self._h)
+        self._out = (ctypes.c_uint8 * TX_BUFFER)()
+
+    def boot(self, boot_id: int, now_ms: int) -> None:
+        self._lib.fwh_boot(self._h, int(boot_id) & 0xFFFFFFFF, _ms(now_ms))
+
+    def feed(self, data: bytes, now_ms: int) -> None:
+        data = bytes(data)
+        self._lib.fwh_rx(self._h, data, len(data), _ms(now_ms))
+
+    def tick(self, now_ms: int) -> None:
+        self._lib.fwh_tick(self._h, _ms(now_ms))
+
+    def take_output(self) -> bytes:
+        """Everything the board has written to its serial port since the last call."""
+        n = self._lib.fwh_tx_take(self._h, self._out, TX_BUFFER)
+        return bytes(self._out[:n])
+
+    def set_encoder(self, ticks: int) -> None:
+        # The board's counter is an int32 that wraps; so does this one.
+        ticks = int(ticks) & 0xFFFFFFFF
+        self._lib.fwh_set_encoder(self._h, ticks - (1 << 32) if ticks >= 1 << 31 else ticks)
+
+    @property
+    def steer_us(self) -> int:
+        return int(self._lib.fwh_pwm_us(self._h, 0))
+
+    @property
+    def throttle_us(self) -> int:
+        return int(self._lib.fwh_pwm_us(self._h, 1))
+
+    @property
+    def state(self) -> m.State:
+        return m.State(self._lib.fwh_state(self._h))
+
+    @property
+    def reason(self) -> m.Reason:
+        return m.Reason(self._lib.fwh_reason(self._h))
+
+    @property
+    def arm_refusal(self) -> m.ArmRefusal:
+        return m.ArmRefusal(self._lib.fwh_arm_refusal(self._h))
+
+    @property
+    def counters(self) -> dict[str, int]:
+        out = (ctypes.c_uint16 * 4)()
+        self._lib.fwh_counters(self._h, out)
+        return dict(zip(("bad_crc", "bad_length", "overruns", "tx_dropped"), out, strict=True))
+
+    @property
+    def storage(self) -> bytes:
+        """The persistent config blob, e.g. to keep it in a file between simulator runs."""
+        size = self._lib.fwh_storage_size()
+        out = (ctypes.c_uint8 * size)()
+        self._lib.fwh_storage_get(self._h, out)
+        return bytes(out)
+
+    @storage.setter
+    def storage(self, blob: bytes) -> None:
+        # A blob of another size (an older firmware's file) is cut or padded like erased
+        # EEPROM (0xFF) rather than refused: the firmware itself must reject what it cannot
+        # verify, exactly as it would on a board.
+        size = self._lib.fwh_storage_size()
+        data = bytes(blob[:size]).ljust(size, b"\xff")
+        self._lib.fwh_storage_set(self._h, (ctypes.c_uint8 * size).from_buffer_copy(data))
+
+
+def protocol_hash() -> int:
+    """The hash compiled into the C core (CARRT_PROTOCOL_HASH)."""
+    return int(load_library().fwh_protocol_hash())
+
+
+def payload_size(type_id: int) -> int:
+    """The C core's payload size for a type id (-1 when it does not know the type)."""
+    return int(load_library().fwh_payload_size(int(type_id) & 0xFF))
+
+
+def proto_roundtrip(type_id: int, payload: bytes) -> bytes | None:
+    """Payload through the generated C unpack then pack: equal bytes mean both ends agree."""
+    out = (ctypes.c_uint8 * m.MAX_FRAME_DECODED)()
+    payload = bytes(payload)
+    n = load_library().fwh_proto_roundtrip(int(type_id) & 0xFF, payload, len(payload), out)
+    return None if n < 0 else bytes(out[:n])
+
+
+def encode_frame(type_id: int, seq: int, payload: bytes) -> bytes:
+    """Wire bytes (COBS + 0x00) from the C core's own encoder, for comparison with the codec."""
+    out = (ctypes.c_uint8 * MAX_ENCODED_FRAME)()
+    payload = bytes(payload)
+    n = load_library().fwh_encode_frame(
+        int(type_id) & 0xFF, int(seq) & 0xFFFF, payload, len(payload), out
+    )
+    if n == 0:
+        raise ValueError(f"payload of {len(payload)} bytes does not fit in a frame")
+    return bytes(out[:n])
+
+
+def crc16(data: bytes) -> int:
+    """The C core's CRC-16/CCITT-FALSE."""
+    data = bytes(data)
+    return int(load_library().fwh_crc16(data, len(data)))
