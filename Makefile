@@ -5,7 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench lint format clean
+.PHONY: demo test bench lint format clean firmware-avr
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -30,3 +30,14 @@ lint: $(STAMP)
 
 clean:
 	rm -rf $(VENV) build firmware_bridge/_build .pytest_cache .hypothesis
+
+# Cross-compile the firmware core for an ATmega328P (Uno/Nano) with the same warnings as the
+# host build, plus -Wconversion, to catch 16-bit-int mistakes. Needs avr-gcc
+# (Debian/Ubuntu: apt-get install gcc-avr avr-libc).
+AVR_SRC := firmware_bridge/firmware/carrt_fw/src
+firmware-avr:
+	mkdir -p build/avr
+	printf '#include "fw_core.h"\nstatic fw_core_t core;\nstatic fw_hal_t hal;\nint main(void) {\n  fw_core_init(&core, &hal, 1u, 0u);\n  for (;;) { fw_core_tick(&core, 0u); }\n}\n' > build/avr/main.c
+	avr-gcc -mmcu=atmega328p -std=c99 -Os -Wall -Wextra -Werror -Wshadow -Wconversion -Wsign-conversion \
+		-I$(AVR_SRC) build/avr/main.c $(AVR_SRC)/fw_core.c $(AVR_SRC)/fw_frame.c -o build/avr/carrt_core.elf
+	avr-size -C --mcu=atmega328p build/avr/carrt_core.elf
