@@ -1,0 +1,166 @@
+"""One small interface per role on the car.
+
+The control loop only ever talks to these. Real drivers (OpenCV camera, pygame joystick,
+onnxruntime policy, serial board link, wall clock, disk writer) and their stand-ins (video
+file, synthetic events, simulator, simulated clock) implement the same methods, so the loop
+cannot tell which it has and every stand-in is a first-class implementation, not a patch.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+IMAGE_SHAPE = (96, 96, 3)
+HORIZON = 10
+CONTROL_PERIOD_S = 0.1
+
+
+class Mode(enum.IntEnum):
+    """Who drives. ESTOP is latched until the human clears it."""
+
+    DISARMED = 0
+    MANUAL = 1
+    AUTO = 2
+    ESTOP = 3
+
+
+# ----------------------------------------------------------------------------- clock
+@runtime_checkable
+class Clock(Protocol):
+    """Monotonic time in seconds; the simulator's clock jumps instead of sleeping."""
+
+    def now(self) -> float: ...
+
+    def sleep_until(self, deadline: float) -> None: ...
+
+
+# ----------------------------------------------------------------------------- camera
+@dataclass(frozen=True)
+class CameraFrame:
+    """A raw frame as captured: any size, RGB uint8, with the moment it was captured."""
+
+    image: np.ndarray  # (H, W, 3) uint8 RGB, before crop/resize
+    captured_at: float  # clock seconds when the frame left the sensor/decoder
+    seq: int  # increases by one per captured frame; a gap means frames were skipped
+
+
+@runtime_checkable
+class Camera(Protocol):
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def latest(self) -> CameraFrame | None:
+        """The newest frame captured so far (never blocks); None before the first."""
+        ...
+
+    @property
+    def lost(self) -> bool:
+        """True when the source has died (device gone, pipeline error, file ended)."""
+        ...
+
+
+# ----------------------------------------------------------------------------- joystick
+@dataclass(frozen=True)
+class JoystickEvents:
+    """Edges since the last poll (buttons pressed), so a press is never missed or repeated."""
+
+    estop: bool = False
+    toggle_auto: bool = False  # switch MANUAL <-> AUTO (drive only)
+    arm: bool = False  # arm / disarm request (start button)
+    toggle_record: bool = False
+    lap: bool = False  # lap marker (for `carrt report`)
+    clear: bool = False  # clear a latched e-stop (needs neutral sticks)
+    quit: bool = False  # window closed / quit requested
+
+
+@dataclass(frozen=True)
+class JoystickState:
+    connected: bool
+    steering: float  # [-1, 1], after deadzone, + right
+    throttle: float  # [-1, 1], after deadzone, + forward
+    neutral_since_connect: bool  # every mapped axis has been seen at neutral since (re)connect
+    events: JoystickEvents = field(default_factory=JoystickEvents)
+
+    @property
+    def sticks_moved(self) -> bool:
+        return self.steering != 0.0 or self.throttle != 0.0
+
+
+@runtime_checkable
+class Joystick(Protocol):
+    def start(self, on_estop: Any) -> None:
+        """Start reading. `on_estop()` is called from the reader thread the moment the e-stop
+        button is pressed or the pad is removed, so the e-stop reaches the wire without
+        waiting for the next loop tick."""
+        ...
+
+    def stop(self) -> None: ...
+
+    def poll(self) -> JoystickState:
+        """Current sticks and the button edges since the previous poll."""
+        ...
+
+
+# ----------------------------------------------------------------------------- policy
+@dataclass(frozen=True)
+class Plan:
+    """The policy's output: a Gaussian over the next H actions (steering, throttle)."""
+
+    mu: np.ndarray  # (H, 2) float32
+    sigma: np.ndarray  # (H, 2) float32
+
+
+@runtime_checkable
+class Policy(Protocol):
+    metadata: dict[str, str]
+    horizon: int
+
+    def predict(self, image: np.ndarray, speed_mps: float) -> Plan:
+        """image: (96, 96, 3) uint8 RGB exactly as recorded; speed in m/s."""
+        ...
+
+
+# ----------------------------------------------------------------------------- episodes
+@dataclass
+class Step:
+    """Everything recorded for one control period (DESIGN §7)."""
+
+    index: int
+    image: np.ndarray  # (96, 96, 3) uint8 RGB
+    frame_captured_at: float  # clock seconds
+    command_sent_at: float  # clock seconds when the command was written to the link
+    wall_time: float  # unix seconds at the tick, for humans
+    speed_mps: float
+    encoder_ticks: int
+    human_action: tuple[float, float]  # a*: what the human's sticks said (steering, throttle)
+    policy_action: tuple[float, float]  # first step of μ when AUTO, else (nan, nan)
+    executed_action: tuple[float, float]  # a: what was sent to the board
+    mode: Mode
+    override: bool  # human took over from the policy this step (intervention edge)
+    estop: bool  # e-stop latched this step
+    noise: bool  # noise was injected into the executed action
+    collision: bool  # a collision event happened at this step (sim, or e-stop in drive)
+    lap: bool  # the lap-marker button was pressed at this step
+    plan_mu: np.ndarray | None = None  # (H, 2) when AUTO
+    plan_sigma: np.ndarray | None = None  # (H, 2) when AUTO
+
+
+@runtime_checkable
+class EpisodeSink(Protocol):
+    """Where the loop hands steps. Must never block the loop: it drops and counts instead."""
+
+    def begin(self, metadata: dict[str, Any]) -> None: ...
+
+    def write(self, step: Step) -> bool:
+        """Queue a step; False (and a counted drop) when the writer is behind."""
+        ...
+
+    def end(self, reason: str) -> None: ...
+
+    @property
+    def dropped(self) -> int: ...
