@@ -1,14 +1,32 @@
-"""The `carrt` command: one entry point, one sub-command per job on the car."""
+"""The `carrt` command: one entry point, one sub-command per job on the car.
+
+Sub-commands are registered from their own modules; the ones that need OpenCV, onnxruntime
+or pygame are only imported when their parser is built, which is every run, so those modules
+keep their heavy imports inside functions where start-up time matters (`carrt check` on a
+Jetson should not wait for onnxruntime).
+"""
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 
 from carrt import __version__
-from carrt import check as check_cmd
 from carrt.errors import EXIT_USAGE, UserError
+from carrt.model_contract import ContractError
 from firmware_bridge.link import LinkError
+
+# module: function that registers its sub-command(s)
+COMMANDS = (
+    ("carrt.check", "add_parser"),
+    ("carrt.config_cmd", "add_parser"),
+    ("carrt.calibrate", "add_parser"),
+    ("carrt.session", "add_parsers"),
+    ("carrt.episodes.cli", "add_parser"),
+    ("carrt.report", "add_parser"),
+    ("carrt.model_info", "add_parser"),
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -17,7 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"carrt {__version__}")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    check_cmd.add_parser(subparsers)
+    for module_name, function in COMMANDS:
+        getattr(importlib.import_module(module_name), function)(subparsers)
     return parser
 
 
@@ -25,8 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (UserError, LinkError) as exc:
-        print(f"carrt {args.command}: error: {exc}", file=sys.stderr)
+    except (UserError, LinkError, ContractError) as exc:
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        print(f"carrt {args.command}: error: {message}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         return 130

@@ -14,7 +14,8 @@ Metadata (ONNX metadata_props, all strings): the keys in REQUIRED_KEYS.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 SCHEMA = "carrt.policy/1"
 
@@ -102,3 +103,107 @@ def action_bounds(meta: Mapping[str, str]) -> tuple[tuple[float, ...], tuple[flo
     return _floats(meta["carrt.action_low"], "carrt.action_low"), _floats(
         meta["carrt.action_high"], "carrt.action_high"
     )
+
+
+# ----------------------------------------------------------------------------- graph inputs/outputs
+@dataclass(frozen=True)
+class TensorSpec:
+    """One graph input or output as a runtime reports it, independent of onnx/onnxruntime.
+
+    dtype is a numpy name ("uint8", "float32"); each dim is an int, or a str/None when the
+    graph leaves it dynamic. export/ and carrt both check graphs through validate_io, so a
+    model the exporter accepts is one the car accepts.
+    """
+
+    name: str
+    dtype: str
+    shape: tuple[int | str | None, ...]
+
+    def render(self) -> str:
+        return f"{self.name} {self.dtype} {format_shape(self.shape)}"
+
+
+def format_shape(shape: Sequence[int | str | None]) -> str:
+    return "[" + ", ".join("?" if d is None else str(d) for d in shape) + "]"
+
+
+def expected_io(horizon: int) -> tuple[tuple[TensorSpec, ...], tuple[TensorSpec, ...]]:
+    """The contract's inputs and outputs for a horizon H ("N" is the free batch dim)."""
+    inputs = (
+        TensorSpec(INPUT_IMAGE, "uint8", ("N", *IMAGE_SHAPE)),
+        TensorSpec(INPUT_SPEED, "float32", ("N", 1)),
+    )
+    outputs = (
+        TensorSpec(OUTPUT_MU, "float32", ("N", horizon, 2)),
+        TensorSpec(OUTPUT_SIGMA, "float32", ("N", horizon, 2)),
+    )
+    return inputs, outputs
+
+
+_WHY_DTYPE = {
+    INPUT_IMAGE: " (raw RGB as recorded; normalisation belongs inside the graph)",
+    INPUT_SPEED: " (m/s)",
+}
+
+
+def _check_tensor(kind: str, actual: TensorSpec, expected: TensorSpec, horizon: int) -> None:
+    if actual.dtype != expected.dtype:
+        raise ContractError(
+            f"{kind} {actual.name} is {actual.dtype}, expected {expected.dtype}"
+            + _WHY_DTYPE.get(actual.name, "")
+        )
+    wanted = format_shape(expected.shape)
+    if len(actual.shape) != len(expected.shape):
+        raise ContractError(
+            f"{kind} {actual.name} has shape {format_shape(actual.shape)}, expected {wanted}"
+        )
+    batch, *rest = actual.shape
+    # carrt runs one frame at a time: the batch dim may be dynamic or 1, nothing else.
+    if isinstance(batch, int) and batch != 1:
+        raise ContractError(
+            f"{kind} {actual.name} has a fixed batch of {batch} in {format_shape(actual.shape)}, "
+            f"expected a dynamic batch: {wanted}"
+        )
+    for axis, (dim, want) in enumerate(zip(rest, expected.shape[1:], strict=True), start=1):
+        # A dynamic dim is accepted here; the run-time output shape is checked at warm-up.
+        if isinstance(dim, int) and dim != want:
+            extra = ""
+            if kind == "output" and axis == 1:
+                extra = f" (metadata carrt.horizon is {horizon})"
+            raise ContractError(
+                f"{kind} {actual.name} has shape {format_shape(actual.shape)}, "
+                f"expected {wanted}{extra}"
+            )
+
+
+def validate_io(inputs: Sequence[TensorSpec], outputs: Sequence[TensorSpec], horizon: int) -> None:
+    """Check a graph's inputs and outputs against the contract. Raises ContractError.
+
+    Inputs must be exactly image and speed (carrt feeds nothing else); outputs must include
+    mu and sigma (further outputs, e.g. diagnostics, are ignored).
+    """
+    want_in, want_out = expected_io(horizon)
+    names = [t.name for t in inputs]
+    for spec in want_in:
+        if spec.name not in names:
+            raise ContractError(
+                f"input {spec.name!r} missing (the graph's inputs are {', '.join(names) or 'none'}"
+                f"; expected {INPUT_IMAGE}, {INPUT_SPEED})"
+            )
+    extra = [n for n in names if n not in (INPUT_IMAGE, INPUT_SPEED)]
+    if extra:
+        raise ContractError(
+            f"unexpected input {extra[0]!r} (the contract has only {INPUT_IMAGE}, {INPUT_SPEED})"
+        )
+    out_names = [t.name for t in outputs]
+    for spec in want_out:
+        if spec.name not in out_names:
+            raise ContractError(
+                f"output {spec.name!r} missing (the graph's outputs are "
+                f"{', '.join(out_names) or 'none'}; expected {OUTPUT_MU}, {OUTPUT_SIGMA})"
+            )
+    by_name = {t.name: t for t in [*inputs, *outputs]}
+    for spec in want_in:
+        _check_tensor("input", by_name[spec.name], spec, horizon)
+    for spec in want_out:
+        _check_tensor("output", by_name[spec.name], spec, horizon)

@@ -147,6 +147,7 @@ class BoardLink:
         self._want_arm = False
         self._arm_sent_seq: int | None = None
         self._clear_sent_seq: int | None = None
+        self.last_arm_refusal: m.ArmRefusal | None = None
         self._telemetry: TelemetrySample | None = None
         self._telemetry_times: collections.deque[float] = collections.deque(maxlen=100)
         self._waiters: dict[tuple[int, int], tuple[threading.Event, list[Any]]] = {}
@@ -200,11 +201,21 @@ class BoardLink:
         return self._connected.is_set()
 
     # ------------------------------------------------------------------ commands
-    def set_command(self, steering: float, throttle: float, decision_id: int | None = None) -> None:
+    def set_command(
+        self,
+        steering: float,
+        throttle: float,
+        decision_id: int | None = None,
+        *,
+        send_now: bool = False,
+    ) -> float | None:
         """Hand over the latest decision; it is repeated at 50 Hz until the next one.
 
         Each call is a new decision (a new id), which is what keeps the board's freshness
         check satisfied: if the caller stops calling, the board fails safe after 300 ms.
+        With send_now the decision is also written at once (the control loop does this, so
+        frame-to-command latency does not include up to 20 ms of waiting for the sender);
+        the return value is then the clock time the write completed, or None if it failed.
         """
         with self._state_lock:
             self._steering = _to_fixed(steering)
@@ -212,6 +223,30 @@ class BoardLink:
             self._decision_id = (
                 (self._decision_id + 1) if decision_id is None else decision_id
             ) & 0xFFFFFFFF
+        if send_now and self._write_command():
+            return self.clock()
+        return None
+
+    def request_arm(self) -> None:
+        """Ask to arm without waiting (the control loop must not block); see `arm`."""
+        if self._estop_latched:
+            return
+        with self._state_lock:
+            if not self._want_arm:
+                self._want_arm = True
+                self._arm_sent_seq = None
+
+    def request_clear(self) -> None:
+        """Send CLEAR frames until the board has left ESTOP/FAILSAFE, without waiting."""
+        with self._state_lock:
+            self._estop_latched = False
+            self._want_arm = False
+            self._clear_pending = True
+            self._clear_sent_seq = None
+
+    @property
+    def arm_requested(self) -> bool:
+        return self._want_arm
 
     def estop(self) -> None:
         """Latch e-stop on the host and put it on the wire now, from this thread."""
@@ -375,7 +410,7 @@ class BoardLink:
             self.counters.frames_sent += 1
             return True
 
-    def _write_command(self) -> None:
+    def _write_command(self) -> bool:
         with self._state_lock:
             flags = 0
             if self._estop_latched:
@@ -395,7 +430,7 @@ class BoardLink:
                 self._arm_sent_seq = seq
             if flags == m.CommandFlags.CLEAR and self._clear_sent_seq is None:
                 self._clear_sent_seq = seq
-        self._write(encode_frame(command, seq))
+        return self._write(encode_frame(command, seq))
 
     def _send_loop(self) -> None:
         next_send = time.monotonic()
@@ -534,16 +569,25 @@ class BoardLink:
             self._resolve((m.ConfigAck.TYPE, message.config_seq), message)
 
     def _watch_arming(self, tel: m.Telemetry) -> None:
-        """Once the board has left ARMED on its own, re-arming must be a new, explicit request."""
+        """Follow the board: a finished clear stops the CLEAR flag, and once the board has
+        left ARMED on its own, re-arming must be a new, explicit request."""
         with self._state_lock:
-            sent = self._arm_sent_seq
+            left_latch = tel.state not in (m.State.ESTOP, m.State.FAILSAFE)
+            sent = self._clear_sent_seq
             if (
-                self._want_arm
+                self._clear_pending
+                and left_latch
                 and sent is not None
                 and _seq_reached(tel.last_seq, sent)
-                and tel.state in (m.State.ESTOP, m.State.FAILSAFE)
             ):
-                self._want_arm = False
+                self._clear_pending = False
+            sent = self._arm_sent_seq
+            if self._want_arm and sent is not None and _seq_reached(tel.last_seq, sent):
+                if not left_latch:
+                    self._want_arm = False
+                elif tel.state == m.State.DISARMED and tel.arm_refusal:
+                    self._want_arm = False  # refused: a new press must make a new edge
+                    self.last_arm_refusal = m.ArmRefusal(tel.arm_refusal)
 
     def _resolve(self, key: tuple[int, int], message: Any) -> None:
         waiter = self._waiters.get(key)

@@ -1,0 +1,341 @@
+"""The host's one place for safety arbitration: who drives this tick, and when nobody may.
+
+The microcontroller still has the last word (watchdog, freshness, latch, arming checks, stall);
+this module decides what the host asks for, so the two agree and the human sees why the car is
+not moving. Everything here is a pure function of the inputs and the arbiter's own small state,
+apart from `estop()`, the fast path: the joystick's reader thread calls it the moment the e-stop
+button is pressed or the pad is removed, and it calls `on_estop()` (the link's `estop()`, which
+writes an e-stop frame at once) from that thread instead of waiting for the next 10 Hz tick.
+
+Modes (DESIGN §4): DISARMED → MANUAL / AUTO → ESTOP, and ESTOP is latched: only an explicit
+clear (with a connected pad and neutral sticks) leaves it, and it leads to DISARMED, never
+straight back to driving. Every entry into ESTOP, from whichever thread, calls `on_estop()`
+exactly once.
+
+Why the board's state is an input: the board may stop the car by itself (failsafe, reboot, its
+own e-stop latch). The host follows it down (FAILSAFE/DISARMED → DISARMED, ESTOP → ESTOP) so it
+never believes it is driving a car that is not listening, and the human must clear and arm again.
+Telemetry lags the host's requests by a frame or two, so after a clear or an arm the board gets
+a grace period (`BOARD_GRACE_S`, the link's own timeout for both) to catch up.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from carrt.config import CameraConfig, EncoderConfig
+from carrt.interfaces import JoystickState, Mode
+from firmware_bridge.messages import Reason, State
+
+BOARD_GRACE_S = 1.0
+"""How long the board may lag a clear or an arm before the host stops waiting for it."""
+
+DEFAULT_ESTOP_WHY = "joystick: e-stop button pressed or pad removed"
+
+
+@dataclass(frozen=True)
+class ArbiterInputs:
+    """Everything one decision depends on, measured at the start of the tick."""
+
+    now: float  # clock seconds (the loop's clock), for the board grace periods
+    joystick: JoystickState
+    frame_age_s: float | None  # age of the newest camera frame; None before the first
+    camera_lost: bool
+    telemetry_age_s: float  # inf before the first telemetry
+    board_state: State
+    plan_action: tuple[float, float] | None = None  # μ of the plan computed this tick
+    fallback_action: tuple[float, float] | None = None  # next step of the previous plan
+    board_reason: int = 0  # messages.Reason, only used to explain a failsafe
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the loop sends this tick, and which one-shot link requests go with it."""
+
+    mode: Mode
+    steering: float
+    throttle: float
+    source: str  # 'neutral' | 'human' | 'policy' | 'plan-fallback'
+    reason: str = ""  # why the command is neutral; '' when someone drives
+    refused: str = ""  # why a button press this tick was refused; '' when none was
+    override: bool = False  # the human took over from the policy this tick (an intervention)
+    estop: bool = False  # ESTOP was latched since the previous decision (from any thread)
+    arm_request: bool = False  # the loop should ask the board to arm (link.arm)
+    disarm_request: bool = False  # the loop should drop the arm request (link.disarm)
+    clear_request: bool = False  # the loop should clear the board's latch (link.clear)
+
+
+def _clip(value: float) -> float:
+    return min(max(float(value), -1.0), 1.0)
+
+
+def _finite(action: tuple[float, float]) -> bool:
+    return all(math.isfinite(float(v)) for v in action)
+
+
+def _failsafe_text(reason: int) -> str:
+    """'board failsafe (link timeout)', or without the parenthesis when the loop gave no reason."""
+    if not reason:
+        return "board failsafe"
+    try:
+        why = Reason(reason).name.lower().replace("_", " ")
+    except ValueError:
+        why = f"reason {reason}"
+    return f"board failsafe ({why})"
+
+
+class Arbiter:
+    """Mode machine and command selection; `step()` once per tick, `estop()` from any thread.
+
+    `deadzone` is an extra margin on the joystick's values for sticks that arrive without a
+    deadzone applied (a scripted expert, a keyboard); PygameJoystick already zeroes values
+    inside its deadzone, so 0 (any non-zero stick value counts as moved) is right for it.
+    """
+
+    def __init__(
+        self,
+        *,
+        allow_auto: bool,
+        camera: CameraConfig,
+        encoder: EncoderConfig,
+        deadzone: float = 0.0,
+        on_estop: Callable[[], None] | None = None,
+    ) -> None:
+        self.allow_auto = allow_auto
+        self.max_frame_age_s = camera.max_age_s
+        self.max_telemetry_age_s = encoder.max_age_s
+        self.deadzone = deadzone
+        self._on_estop = on_estop
+        self._lock = threading.Lock()
+        self._mode = Mode.DISARMED
+        self._why = "not armed yet: press arm with the sticks at neutral"
+        self._estop_reason = ""
+        self._estop_edge = False
+        self._interventions = 0
+        self._clear_since: float | None = None  # clear sent, board not yet out of its latch
+        self._armed_since: float | None = None  # arm sent, board not yet seen ARMED
+        self._board_armed_seen = False
+        self._fallback_used = False
+
+    # ------------------------------------------------------------------ state
+    @property
+    def mode(self) -> Mode:
+        return self._mode
+
+    @property
+    def interventions(self) -> int:
+        return self._interventions
+
+    @property
+    def estop_reason(self) -> str:
+        return self._estop_reason
+
+    # ------------------------------------------------------------------ fast path
+    def estop(self, why: str = DEFAULT_ESTOP_WHY) -> None:
+        """Latch ESTOP now and put it on the wire from the calling thread (once per latch).
+
+        The callback runs under the lock on purpose: a clear cannot slip in between the latch
+        and the frame on the wire, so the host and the board never disagree about the latch.
+        """
+        with self._lock:
+            self._latch(why)
+
+    def _latch(self, why: str) -> None:
+        if self._mode == Mode.ESTOP:
+            return
+        self._mode = Mode.ESTOP
+        self._estop_reason = why
+        self._estop_edge = True
+        self._clear_since = self._armed_since = None
+        if self._on_estop is not None:
+            self._on_estop()
+
+    # ------------------------------------------------------------------ the tick
+    def step(self, inputs: ArbiterInputs) -> Decision:
+        with self._lock:
+            return self._step(inputs)
+
+    def _step(self, inp: ArbiterInputs) -> Decision:
+        js, ev = inp.joystick, inp.joystick.events
+        board = State(inp.board_state)
+        moved = self._moved(js)
+        arm = disarm = clear = override = False
+        refused = ""
+
+        # 1. Everything that latches ESTOP.
+        if ev.estop:
+            self._latch("e-stop button")
+        if not js.connected and self._mode in (Mode.MANUAL, Mode.AUTO):
+            self._latch("joystick disconnected")
+        if inp.camera_lost and self._mode == Mode.AUTO:
+            self._latch("camera lost")
+        if board == State.ESTOP:
+            if self._clear_since is None:
+                self._latch("the board reports e-stop")
+            elif inp.now - self._clear_since > BOARD_GRACE_S:
+                self._latch("the board did not leave e-stop after a clear")
+        if self._clear_since is not None and board not in (State.ESTOP, State.FAILSAFE):
+            self._clear_since = None
+
+        # 2. Follow the board down when it stopped listening to us.
+        if self._mode in (Mode.MANUAL, Mode.AUTO):
+            if board == State.FAILSAFE:
+                disarm = self._disarm(_failsafe_text(inp.board_reason))
+            elif board == State.ARMED:
+                self._board_armed_seen = True
+            elif board == State.DISARMED and (
+                self._board_armed_seen
+                or self._armed_since is None
+                or inp.now - self._armed_since > BOARD_GRACE_S
+            ):
+                disarm = self._disarm(
+                    "the board disarmed" if self._board_armed_seen else "the board did not arm"
+                )
+
+        # 3. Button edges.
+        if self._mode == Mode.ESTOP:
+            if ev.clear and not ev.estop:
+                refused, clear = self._clear(js, moved, inp.now)
+            if ev.arm and not refused:
+                refused = (
+                    "arm refused: arming is a separate press after the clear"
+                    if clear
+                    else "arm refused: e-stop is latched: clear first"
+                )
+        elif self._mode == Mode.DISARMED:
+            if ev.clear:
+                if board in (State.ESTOP, State.FAILSAFE):
+                    refused, clear = self._clear(js, moved, inp.now)
+                else:
+                    refused = "clear: nothing to clear"
+            if ev.arm:
+                refusal = self._arm_refusal(js, moved, board)
+                if refusal:
+                    refused = f"arm refused: {refusal}"
+                else:
+                    self._mode = Mode.MANUAL
+                    self._armed_since, self._board_armed_seen = inp.now, False
+                    arm = True
+            elif ev.toggle_auto:
+                refused = "auto refused: arm first"
+        elif ev.arm:
+            disarm = self._disarm("disarmed by the human")
+        elif self._mode == Mode.AUTO and moved:
+            self._mode = Mode.MANUAL
+            self._interventions += 1
+            override = True
+        elif ev.toggle_auto:
+            if self._mode == Mode.AUTO:
+                self._mode = Mode.MANUAL
+            else:
+                refusal = self._auto_refusal(inp, moved)
+                if refusal:
+                    refused = f"auto refused: {refusal}"
+                else:
+                    self._mode = Mode.AUTO
+                    self._fallback_used = False
+
+        # 4. The command.
+        steering, throttle, source, reason = self._command(inp, board)
+        estop_edge, self._estop_edge = self._estop_edge, False
+        return Decision(
+            mode=self._mode,
+            steering=_clip(steering),
+            throttle=_clip(throttle),
+            source=source,
+            reason=reason,
+            refused=refused,
+            override=override,
+            estop=estop_edge,
+            arm_request=arm,
+            disarm_request=disarm,
+            clear_request=clear,
+        )
+
+    # ------------------------------------------------------------------ rules
+    def _moved(self, js: JoystickState) -> bool:
+        return abs(js.steering) > self.deadzone or abs(js.throttle) > self.deadzone
+
+    def _disarm(self, why: str) -> bool:
+        self._mode = Mode.DISARMED
+        self._why = why
+        self._armed_since = None
+        return True
+
+    def _clear(self, js: JoystickState, moved: bool, now: float) -> tuple[str, bool]:
+        if not js.connected:
+            return "clear refused: no joystick connected", False
+        if moved:
+            return "clear refused: sticks not at neutral", False
+        self._mode = Mode.DISARMED
+        self._why = "cleared: arm when ready"
+        self._estop_reason = ""
+        self._clear_since = now
+        return "", True
+
+    def _arm_refusal(self, js: JoystickState, moved: bool, board: State) -> str:
+        if not js.connected:
+            return "no joystick connected"
+        if not js.neutral_since_connect:
+            return "the pad has not reported neutral sticks since it connected: move them"
+        if moved:
+            return "sticks not at neutral"
+        if self._clear_since is not None:
+            return "waiting for the board to leave its e-stop/failsafe"
+        if board in (State.ESTOP, State.FAILSAFE):
+            return f"the board is in {board.name.lower()}: clear first"
+        return ""
+
+    def _auto_refusal(self, inp: ArbiterInputs, moved: bool) -> str:
+        if not self.allow_auto:
+            return "not available in this mode (teleop)"
+        if moved:
+            return "release the sticks first"
+        stale = self._staleness(inp)
+        if stale:
+            return stale
+        return ""
+
+    def _staleness(self, inp: ArbiterInputs) -> str:
+        if inp.camera_lost:
+            return "camera lost"
+        if inp.frame_age_s is None:
+            return "no camera frame yet"
+        if inp.frame_age_s > self.max_frame_age_s:
+            return f"camera frame {inp.frame_age_s * 1000:.0f} ms old"
+        if inp.telemetry_age_s > self.max_telemetry_age_s:
+            if math.isinf(inp.telemetry_age_s):
+                return "no telemetry from the board yet"
+            return f"telemetry {inp.telemetry_age_s * 1000:.0f} ms old"
+        return ""
+
+    def _command(self, inp: ArbiterInputs, board: State) -> tuple[float, float, str, str]:
+        if self._mode == Mode.ESTOP:
+            return 0.0, 0.0, "neutral", f"e-stop: {self._estop_reason}"
+        if self._mode == Mode.DISARMED:
+            if not inp.joystick.connected:
+                return 0.0, 0.0, "neutral", "no joystick connected"
+            if board == State.FAILSAFE and self._clear_since is None:
+                return 0.0, 0.0, "neutral", f"{_failsafe_text(inp.board_reason)}: clear, then arm"
+            return 0.0, 0.0, "neutral", self._why
+        if self._mode == Mode.MANUAL:
+            return inp.joystick.steering, inp.joystick.throttle, "human", ""
+        stale = self._staleness(inp)
+        if stale:
+            return 0.0, 0.0, "neutral", stale
+        if inp.plan_action is not None:
+            self._fallback_used = False
+            if not _finite(inp.plan_action):
+                return 0.0, 0.0, "neutral", "policy output is not finite"
+            return inp.plan_action[0], inp.plan_action[1], "policy", ""
+        if inp.fallback_action is not None and not self._fallback_used:
+            self._fallback_used = True
+            if not _finite(inp.fallback_action):
+                return 0.0, 0.0, "neutral", "policy output is not finite"
+            return inp.fallback_action[0], inp.fallback_action[1], "plan-fallback", ""
+        if inp.fallback_action is not None:
+            return 0.0, 0.0, "neutral", "no plan: the previous plan's next step was used already"
+        return 0.0, 0.0, "neutral", "no plan this tick"

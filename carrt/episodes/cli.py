@@ -1,0 +1,91 @@
+"""`carrt episodes ls|show|video`: look at recordings before they go into training."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from carrt.episodes.reader import list_episodes, read_episode
+
+# carrt.episodes.inspect imports OpenCV, which every `carrt` command would pay for at start-up
+# if it were imported here: the CLI builds all parsers on every run.
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("episodes", help="list, summarise and render recorded episodes")
+    sub = parser.add_subparsers(dest="episodes_command", required=True, metavar="ACTION")
+
+    ls = sub.add_parser("ls", help="one line per episode: duration, frames, speed, end reason")
+    ls.add_argument(
+        "dirs", nargs="*", default=["episodes"], metavar="DIR", help="default: episodes"
+    )
+    ls.set_defaults(func=run)
+
+    show = sub.add_parser("show", help="an episode's summary and metadata")
+    show.add_argument("episode", metavar="EP")
+    show.add_argument("--json", action="store_true", help="print the summary as JSON")
+    show.add_argument(
+        "--verify", action="store_true", help="check every record's CRC, not only the unsynced tail"
+    )
+    show.set_defaults(func=run)
+
+    video = sub.add_parser("video", help="render an episode to a video or a contact sheet")
+    video.add_argument("episode", metavar="EP")
+    out = video.add_mutually_exclusive_group(required=True)
+    out.add_argument("-o", "--output", metavar="OUT", help="video file: .mp4 (mp4v) or .avi (MJPG)")
+    out.add_argument("--sheet", metavar="PNG", help="write a contact sheet instead")
+    video.add_argument("--fps", type=float, default=10.0, help="video frame rate (default 10)")
+    video.add_argument("--scale", type=int, default=4, help="video upscaling (default 4)")
+    video.add_argument("--every", type=int, default=10, help="sheet: every Nth frame (default 10)")
+    video.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    actions = {"ls": run_ls, "show": run_show, "video": run_video}
+    return actions[args.episodes_command](args)
+
+
+def run_ls(args: argparse.Namespace) -> int:
+    from carrt.episodes.inspect import summarize
+
+    paths = list_episodes(args.dirs)
+    print(f"{'episode':<22} {'duration':>9} {'frames':>7} {'avg m/s':>8}  end")
+    total_s = total_frames = 0
+    for path in paths:
+        s = summarize(read_episode(path))
+        total_s += s["duration_s"]
+        total_frames += s["frames"]
+        end = s["end_reason"] + (" (torn tail)" if s["torn_tail"] else "")
+        print(
+            f"{s['name']:<22} {s['duration_s']:>8.1f}s {s['frames']:>7} "
+            f"{s['avg_speed_mps']:>8.2f}  {end}"
+        )
+    print(f"{len(paths)} episodes, {total_s / 60:.1f} min, {total_frames} frames")
+    return 0
+
+
+def run_show(args: argparse.Namespace) -> int:
+    from carrt.episodes.inspect import format_summary, summarize
+
+    ep = read_episode(args.episode, verify_all=args.verify)
+    summary = summarize(ep)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(format_summary(summary))
+    meta = {k: v for k, v in ep.meta.items() if k != "format"}
+    print("metadata:")
+    print(json.dumps(meta, indent=2, default=str))
+    return 0
+
+
+def run_video(args: argparse.Namespace) -> int:
+    from carrt.episodes.inspect import render_contact_sheet, render_video
+
+    ep = read_episode(args.episode)
+    if args.sheet:
+        out = render_contact_sheet(ep, args.sheet, every=args.every)
+    else:
+        out = render_video(ep, args.output, fps=args.fps, scale=args.scale)
+    print(f"wrote {out} ({ep.n} frames)")
+    return 0

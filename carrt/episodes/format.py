@@ -1,0 +1,253 @@
+"""The episode format on disk: one directory per episode, three append-only or atomic files.
+
+```
+<root>/<YYYYmmdd-HHMMSS>-<nnn>/
+    meta.json     metadata; written atomically (tmp + fsync + rename) at begin, again at end
+    frames.u8     N x 27648 bytes: frame i is the (96, 96, 3) uint8 RGB image at i * 27648
+    steps.bin     N fixed-size records (STEP_DTYPE, little-endian); record i describes frame i
+    synced.json   {"steps": n}: the first n steps are known durable (rewritten after each fsync)
+```
+
+Why this shape: a power cut can only tear the end of the two append-only files, and each
+record carries a CRC-32 over itself and its frame, so the reader finds the last good step by
+itself; `synced.json` tells it where checking can start, so opening a 94K-frame dataset does not
+mean hashing 2.6 GB. Frames are one fixed-record file so training can memory-map them. The record
+dtype is written into meta.json, so numpy alone can read any episode without this package.
+
+A step record is committed when its CRC matches: the writer appends the frame first, then the
+record, so a record never describes a frame that is not on disk.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import zlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from carrt.interfaces import HORIZON, IMAGE_SHAPE, Step
+
+SCHEMA = "carrt.episode/1"
+SCHEMA_MAJOR = SCHEMA.rsplit("/", 1)[1]
+
+META = "meta.json"
+FRAMES = "frames.u8"
+STEPS = "steps.bin"
+SYNCED = "synced.json"
+
+FRAME_BYTES = int(np.prod(IMAGE_SHAPE))  # 27648
+MAGIC = 0x31455243  # b"CRE1" little-endian: a zero-filled tail can never look like a record
+COLLISION_WINDOW_S = 0.5  # the paper labels the 0.5 s before a collision (5 frames at 10 Hz)
+WINDOW_TOLERANCE_S = 1e-6  # t_k - 0.5 s computed in floating point must not admit a 6th frame
+
+END_CRASHED = "crashed"  # what the reader reports for an episode whose end was never written
+END_DISK_FULL = "disk full"
+END_WRITE_ERROR = "write error"
+COLLISION_END_REASONS = ("collision", "estop")
+
+FLAGS = ("override", "estop", "noise", "collision", "lap")
+
+
+def step_dtype(horizon: int = HORIZON) -> np.dtype:
+    """The record layout; fields are naturally aligned and the record is a multiple of 8 bytes.
+
+    `crc` must stay the last 4 bytes: it is CRC-32 over the record's other bytes, then the frame.
+    """
+    fields = [
+        ("magic", "<u4"),
+        ("seq", "<u4"),  # record number in this file: a record copied to the wrong place fails
+        ("index", "<i8"),  # the loop's step index (gaps = steps the writer dropped)
+        ("frame_captured_at", "<f8"),
+        ("command_sent_at", "<f8"),
+        ("wall_time", "<f8"),
+        ("encoder_ticks", "<i8"),
+        ("speed_mps", "<f4"),
+        ("human_action", "<f4", (2,)),
+        ("policy_action", "<f4", (2,)),
+        ("executed_action", "<f4", (2,)),
+        ("plan_mu", "<f4", (horizon, 2)),
+        ("plan_sigma", "<f4", (horizon, 2)),
+        ("mode", "u1"),
+        *((name, "?") for name in FLAGS),
+    ]
+    size = np.dtype(fields).itemsize + 4
+    pad = -size % 8
+    if pad:
+        fields.append(("_reserved", "u1", (pad,)))
+    fields.append(("crc", "<u4"))
+    return np.dtype(fields)
+
+
+STEP_DTYPE = step_dtype(HORIZON)
+
+
+def dtype_to_json(dtype: np.dtype) -> dict[str, Any]:
+    """Names, formats and offsets: enough for `np.dtype(...)` to rebuild it byte for byte."""
+    formats = []
+    for name in dtype.names:
+        sub = dtype.fields[name][0]
+        formats.append((str(sub.shape) if sub.shape else "") + sub.base.str)
+    return {
+        "names": list(dtype.names),
+        "formats": formats,
+        "offsets": [dtype.fields[n][1] for n in dtype.names],
+        "itemsize": dtype.itemsize,
+    }
+
+
+def dtype_from_json(spec: dict[str, Any]) -> np.dtype:
+    return np.dtype(
+        {
+            "names": spec["names"],
+            "formats": spec["formats"],
+            "offsets": spec["offsets"],
+            "itemsize": spec["itemsize"],
+        }
+    )
+
+
+def format_metadata(dtype: np.dtype) -> dict[str, Any]:
+    """The part of meta.json that says how to read the files with numpy alone."""
+    horizon = dtype.fields["plan_mu"][0].shape[0]
+    return {
+        "frames": {"file": FRAMES, "dtype": "uint8", "shape": list(IMAGE_SHAPE)},
+        "steps": {"file": STEPS, "dtype": dtype_to_json(dtype)},
+        "horizon": horizon,
+        "checksum": "zlib.crc32 over each record without its last 4 bytes, continued over its "
+        "frame; stored in the record's last 4 bytes (crc)",
+        "synced": SYNCED,
+    }
+
+
+def plan_rows(plan: np.ndarray | None, horizon: int) -> np.ndarray:
+    """A plan as exactly `horizon` rows: NaN when absent, cut or NaN-padded if sized otherwise."""
+    out = np.full((horizon, 2), np.nan, dtype=np.float32)
+    if plan is not None:
+        plan = np.asarray(plan, dtype=np.float32).reshape(-1, 2)
+        rows = min(horizon, plan.shape[0])
+        out[:rows] = plan[:rows]
+    return out
+
+
+# The fixed head of every record (magic … executed_action) and the mode + flags bytes: packing
+# with struct keeps the writer thread's hold on the GIL short, so the loop thread rarely waits.
+_HEAD = struct.Struct("<IIqdddqf2f2f2f")
+_MODE_FLAGS = struct.Struct(f"<{1 + len(FLAGS)}B")
+assert STEP_DTYPE.fields["plan_mu"][1] == _HEAD.size, "step_dtype and _HEAD disagree"
+assert STEP_DTYPE.fields["mode"][1] + _MODE_FLAGS.size == STEP_DTYPE.fields[FLAGS[-1]][1] + 1
+
+
+def pack_step(step: Step, image: bytes, seq: int, dtype: np.dtype = STEP_DTYPE) -> bytes:
+    """One record, CRC included. `image` is the frame's 27648 bytes as they go to frames.u8."""
+    fields = dtype.fields
+    horizon = fields["plan_mu"][0].shape[0]
+    raw = bytearray(dtype.itemsize)
+    _HEAD.pack_into(
+        raw,
+        0,
+        MAGIC,
+        seq,
+        step.index,
+        step.frame_captured_at,
+        step.command_sent_at,
+        step.wall_time,
+        step.encoder_ticks,
+        step.speed_mps,
+        *step.human_action,
+        *step.policy_action,
+        *step.executed_action,
+    )
+    for name in ("plan_mu", "plan_sigma"):
+        offset = fields[name][1]
+        raw[offset : offset + 8 * horizon] = plan_rows(getattr(step, name), horizon).tobytes()
+    flags = (bool(getattr(step, name)) for name in FLAGS)
+    _MODE_FLAGS.pack_into(raw, fields["mode"][1], int(step.mode), *flags)
+    crc = zlib.crc32(image, zlib.crc32(memoryview(raw)[:-4]))
+    raw[-4:] = crc.to_bytes(4, "little")
+    return bytes(raw)
+
+
+def record_crc(record: bytes | memoryview, frame: bytes | memoryview) -> int:
+    return zlib.crc32(frame, zlib.crc32(record[:-4]))
+
+
+def fsync_dir(path: Path) -> None:
+    """Make a create/rename inside `path` durable (a no-op where directories cannot be opened)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
+    """Either the old file or the new one survives a power cut, never half of one."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    text = json.dumps(data, indent=1, default=_json_default, allow_nan=True) + "\n"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    try:
+        view = memoryview(text.encode())
+        while view:
+            view = view[os.write(fd, view) :]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
+
+
+def _json_default(value: Any) -> Any:
+    """Metadata comes from configs and models: numpy scalars, paths, dataclasses, enums."""
+    import dataclasses
+    import enum
+
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return dataclasses.asdict(value)
+    if isinstance(value, enum.Enum):
+        return value.name
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (set, frozenset, tuple)):
+        return list(value)
+    return str(value)
+
+
+def run_metadata(
+    *,
+    command: str,
+    car_config: Any = None,
+    model_sha256: str | None = None,
+    model_metadata: dict[str, str] | None = None,
+    model_path: str | None = None,
+    horizon: int = HORIZON,
+    **extra: Any,
+) -> dict[str, Any]:
+    """The metadata the loop passes to begin(): the keys `carrt episodes` and training read.
+
+    `car_config` may be a CarConfig or its dict; `model` is None when a human drives.
+    """
+    import dataclasses
+
+    if dataclasses.is_dataclass(car_config) and not isinstance(car_config, type):
+        car_config = dataclasses.asdict(car_config)
+    model = None
+    if model_sha256 is not None or model_metadata is not None:
+        model = {"sha256": model_sha256, "path": model_path, "metadata": model_metadata or {}}
+    return {
+        "command": command,
+        "horizon": horizon,
+        "car_config": car_config,
+        "model": model,
+        **extra,
+    }

@@ -1,0 +1,231 @@
+"""Read episodes with numpy alone; recover a torn tail without a repair step.
+
+The reader never writes. It trusts the steps that `synced.json` says were durable and checks
+each record after that (magic, record number, CRC over record and frame), stopping at the first
+that fails: that is where the power went. Collision labels are derived here, from the recorded
+flags and the end reason, so nothing on disk is ever rewritten after the fact.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from carrt.episodes import format as fmt
+from carrt.errors import UserError
+from carrt.interfaces import IMAGE_SHAPE, Mode
+
+DRIVING = (int(Mode.MANUAL), int(Mode.AUTO))
+
+
+@dataclass
+class Episode:
+    """One episode as read: `frames[i]` is the image of `steps[i]`; `collision[i]` its label c."""
+
+    path: Path
+    meta: dict[str, Any]
+    frames: np.ndarray  # np.memmap (N, 96, 96, 3) uint8, read-only (a plain empty array if N=0)
+    steps: np.ndarray  # structured (N,), dtype from meta.json
+    collision: np.ndarray  # uint8 (N,)
+    torn: bool  # bytes after the last valid step were ignored
+
+    @property
+    def name(self) -> str:
+        return self.path.name
+
+    @property
+    def n(self) -> int:
+        return len(self.steps)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """Measured frame capture times (clock seconds)."""
+        return self.steps["frame_captured_at"]
+
+    @property
+    def duration_s(self) -> float:
+        """From the first frame's capture to the last's (0 for fewer than two steps)."""
+        t = self.timestamps
+        return float(t[-1] - t[0]) if len(t) > 1 else 0.0
+
+    @property
+    def end_reason(self) -> str:
+        end = self.meta.get("end") or {}
+        return str(end.get("reason") or fmt.END_CRASHED)
+
+    @property
+    def finished(self) -> bool:
+        """The writer wrote the end metadata (otherwise the run crashed or lost power)."""
+        return bool(self.meta.get("end"))
+
+
+def read_meta(path: Path) -> dict[str, Any]:
+    meta_path = path / fmt.META
+    if not meta_path.is_file():
+        raise UserError(f"{path} is not a carrt episode (no {fmt.META})")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (ValueError, OSError) as exc:
+        raise UserError(f"{meta_path}: unreadable ({exc})") from exc
+    schema = str(meta.get("schema", ""))
+    if not schema.startswith("carrt.episode/"):
+        raise UserError(f"{path} is not a carrt episode (schema {schema!r})")
+    if schema.rsplit("/", 1)[1] != fmt.SCHEMA_MAJOR:
+        raise UserError(f"{path}: episode schema {schema} is not {fmt.SCHEMA}; update carrt")
+    return meta
+
+
+def read_episode(path: str | os.PathLike, *, verify_all: bool = False) -> Episode:
+    """Open an episode. `verify_all` checks every CRC instead of only the unsynced tail."""
+    path = Path(path)
+    if path.name == fmt.META and path.is_file():
+        path = path.parent
+    if not path.exists():
+        raise UserError(f"{path} does not exist")
+    meta = read_meta(path)
+    try:
+        dtype = fmt.dtype_from_json(meta["format"]["steps"]["dtype"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"{path}: {fmt.META} has no usable step format ({exc!r})") from exc
+    steps_path, frames_path = path / fmt.STEPS, path / fmt.FRAMES
+    steps_size = _size(steps_path)
+    frames_size = _size(frames_path)
+    candidates = min(steps_size // dtype.itemsize, frames_size // fmt.FRAME_BYTES)
+
+    frames = _map_frames(frames_path, candidates)
+    raw = np.fromfile(steps_path, dtype=dtype, count=candidates) if candidates else None
+    trusted = 0 if verify_all else min(_synced(path), candidates)
+    n = trusted + _valid_prefix(raw, frames, trusted, dtype) if candidates else 0
+
+    steps = raw[:n] if raw is not None else np.zeros(0, dtype=dtype)
+    frames = frames[:n]
+    torn = steps_size != n * dtype.itemsize or frames_size != n * fmt.FRAME_BYTES
+    collision = collision_labels(steps, end_reason=(meta.get("end") or {}).get("reason"))
+    return Episode(path, meta, frames, steps, collision, torn)
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except FileNotFoundError:
+        return 0
+
+
+def _synced(path: Path) -> int:
+    """Steps the writer knew durable; 0 (check everything) if the file is missing or torn."""
+    try:
+        return max(0, int(json.loads((path / fmt.SYNCED).read_text())["steps"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
+
+
+def _map_frames(frames_path: Path, n: int) -> np.ndarray:
+    if n == 0:
+        empty = np.zeros((0, *IMAGE_SHAPE), dtype=np.uint8)
+        empty.flags.writeable = False
+        return empty
+    return np.memmap(frames_path, dtype=np.uint8, mode="r", shape=(n, *IMAGE_SHAPE))
+
+
+def _valid_prefix(raw: np.ndarray, frames: np.ndarray, start: int, dtype: np.dtype) -> int:
+    """How many records from `start` on are whole: magic, record number and CRC all agree."""
+    count = len(raw) - start
+    if count <= 0:
+        return 0
+    tail = raw[start:]
+    ok = (tail["magic"] == fmt.MAGIC) & (tail["seq"] == np.arange(start, len(raw), dtype=np.uint32))
+    bad = np.flatnonzero(~ok)
+    limit = int(bad[0]) if len(bad) else count
+    records = tail.view(np.uint8).reshape(count, dtype.itemsize)
+    crcs = tail["crc"]
+    for i in range(limit):
+        if fmt.record_crc(records[i], frames[start + i]) != int(crcs[i]):
+            return i
+    return limit
+
+
+def collision_events(steps: np.ndarray, end_reason: str | None = None) -> np.ndarray:
+    """Indices k of collision events: the collision flag, an e-stop latched while driving, or
+    the last step of an episode that ended by collision or e-stop."""
+    n = len(steps)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    event = steps["collision"].astype(bool).copy()
+    estop = steps["estop"].astype(bool)
+    mode = steps["mode"].astype(np.int64)
+    prev_estop = np.concatenate(([False], estop[:-1]))
+    prev_mode = np.concatenate((mode[:1], mode[:-1]))
+    driving = np.isin(mode, DRIVING) | np.isin(prev_mode, DRIVING)
+    event |= estop & ~prev_estop & driving
+    if end_reason in fmt.COLLISION_END_REASONS:
+        event[-1] = True
+    return np.flatnonzero(event)
+
+
+def collision_labels(steps: np.ndarray, end_reason: str | None = None) -> np.ndarray:
+    """c = 1 for every step captured in (t_k − 0.5 s, t_k] of an event at step k (the paper)."""
+    labels = np.zeros(len(steps), dtype=np.uint8)
+    t = steps["frame_captured_at"] if len(steps) else np.zeros(0)
+    for k in collision_events(steps, end_reason):
+        tk = t[k]
+        labels[(t > tk - fmt.COLLISION_WINDOW_S + fmt.WINDOW_TOLERANCE_S) & (t <= tk)] = 1
+    return labels
+
+
+def speed_stats(speed: np.ndarray, mode: np.ndarray) -> tuple[float, float]:
+    """(average, top) speed over the steps where someone was driving (MANUAL or AUTO); parked
+    time before arming or after an e-stop would only dilute the average."""
+    speeds = np.asarray(speed, dtype=np.float64)[np.isin(mode, DRIVING)]
+    speeds = speeds[np.isfinite(speeds)]
+    if len(speeds) == 0:
+        return 0.0, 0.0
+    return float(speeds.mean()), float(speeds.max())
+
+
+def estop_count(steps: np.ndarray) -> int:
+    estop = steps["estop"].astype(bool)
+    return int(np.count_nonzero(estop & ~np.concatenate(([False], estop[:-1]))))
+
+
+def is_episode(path: Path) -> bool:
+    return (path / fmt.META).is_file()
+
+
+def list_episodes(root_or_paths: str | os.PathLike | Iterable[str | os.PathLike]) -> list[Path]:
+    """Episode directories, sorted by name (= start time), from episode dirs and/or dirs of them.
+
+    Raises UserError for a path that does not exist, that is neither an episode nor holds any,
+    and when nothing at all was found.
+    """
+    if isinstance(root_or_paths, (str, os.PathLike)):
+        root_or_paths = [root_or_paths]
+    found: set[Path] = set()
+    for item in root_or_paths:
+        path = Path(item)
+        if path.name == fmt.META and path.is_file():
+            path = path.parent
+        if not path.exists():
+            raise UserError(f"{path} does not exist")
+        if is_episode(path):
+            found.add(path)
+            continue
+        if not path.is_dir():
+            raise UserError(f"{path} is not a carrt episode (no {fmt.META})")
+        children = [c for c in path.iterdir() if c.is_dir() and is_episode(c)]
+        if not children:
+            raise UserError(f"no episodes in {path}")
+        found.update(children)
+    if not found:
+        raise UserError("no episodes given")
+    return sorted(found, key=lambda p: (p.name, str(p)))
+
+
+def iter_episodes(root_or_paths: Any, *, verify_all: bool = False) -> Iterable[Episode]:
+    for path in list_episodes(root_or_paths):
+        yield read_episode(path, verify_all=verify_all)

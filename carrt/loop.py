@@ -1,0 +1,338 @@
+"""The 10 Hz control loop: camera → policy → arbitration → board, and the episode log.
+
+Ticks are scheduled on absolute deadlines (t0 + k·period) from an injectable clock, so one
+slow tick is an overrun that is counted, not a drift of every later tick; with the simulated
+clock the same loop runs faster than real time. Each tick is split into timed sections
+(capture, preprocess, inference, arbitration, actuation, logging) whose p50/p99 are reported
+at exit with the achieved rate and the frame-to-command latency, in the spirit of openpilot's
+rates and liveness as data.
+
+Safety is not decided here: the arbiter (carrt.arbitration) decides what may be sent, and the
+board has the last word. The loop only measures, asks and forwards, and it never blocks on
+disk: steps go to the episode writer's bounded queue.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from carrt.arbitration import Arbiter, ArbiterInputs, Decision
+from carrt.camera import preprocess
+from carrt.config import CarConfig
+from carrt.interfaces import Camera, Clock, EpisodeSink, Joystick, Mode, Policy, Step
+from carrt.noise import NoiseInjector
+from carrt.policy import PlanBuffer
+from carrt.speed import SpeedEstimator
+from firmware_bridge import messages as m
+from firmware_bridge.link import BoardLink
+
+SECTIONS = ("capture", "preprocess", "inference", "arbitration", "actuation", "logging")
+NAN2 = (math.nan, math.nan)
+
+
+@dataclass
+class LoopParts:
+    """Everything the loop talks to; real drivers and stand-ins are interchangeable."""
+
+    clock: Clock
+    camera: Camera
+    link: BoardLink
+    joystick: Joystick
+    policy: Policy | None = None
+    sink: EpisodeSink | None = None
+    noise: NoiseInjector | None = None
+
+
+@dataclass
+class LoopSummary:
+    steps: int = 0
+    duration_s: float = 0.0
+    overruns: int = 0
+    skipped_inferences: int = 0
+    sections_ms: dict[str, tuple[float, float]] = field(default_factory=dict)
+    frame_to_command_ms: tuple[float, float] = (math.nan, math.nan)
+    tick_lateness_ms: tuple[float, float] = (math.nan, math.nan)  # tick start - its deadline
+    max_tick_lateness_ms: float = math.nan
+    interventions: int = 0
+    estops: int = 0
+    episodes: int = 0
+    recorded_steps: int = 0
+    dropped_steps: int = 0
+    modes_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def achieved_hz(self) -> float:
+        return self.steps / self.duration_s if self.duration_s > 0 else 0.0
+
+    def render(self) -> str:
+        lines = [
+            f"loop: {self.steps} ticks in {self.duration_s:.1f} s = {self.achieved_hz:.2f} Hz, "
+            f"{self.overruns} overruns, {self.skipped_inferences} late inferences skipped",
+            "  section        p50 ms   p99 ms",
+        ]
+        for name in SECTIONS:
+            p50, p99 = self.sections_ms.get(name, (math.nan, math.nan))
+            lines.append(f"  {name:<12} {p50:8.2f} {p99:8.2f}")
+        p50, p99 = self.frame_to_command_ms
+        lines.append(f"  frame→command {p50:7.2f} {p99:8.2f}")
+        p50, p99 = self.tick_lateness_ms
+        lines.append(
+            f"  tick lateness {p50:7.2f} {p99:8.2f}   (max {self.max_tick_lateness_ms:.2f})"
+        )
+        lines.append(
+            f"  interventions {self.interventions}, e-stops {self.estops}, episodes "
+            f"{self.episodes}, steps recorded {self.recorded_steps}, dropped {self.dropped_steps}"
+        )
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**self.__dict__, "achieved_hz": self.achieved_hz}
+
+
+def _percentiles(values: list[float]) -> tuple[float, float]:
+    if not values:
+        return (math.nan, math.nan)
+    p50, p99 = np.percentile(np.asarray(values) * 1e3, [50, 99])
+    return (float(p50), float(p99))
+
+
+class ControlLoop:
+    """One driving session. `run()` returns when stopped, on quit, or after `max_steps`."""
+
+    def __init__(
+        self,
+        parts: LoopParts,
+        config: CarConfig,
+        *,
+        allow_auto: bool,
+        record: bool,
+        episode_metadata: dict[str, Any] | None = None,
+        max_steps: int | None = None,
+        log: Callable[[str], None] = print,
+    ) -> None:
+        self.parts = parts
+        self.config = config
+        self.period = 1.0 / config.loop.rate_hz
+        self.record = record and parts.sink is not None
+        self.episode_metadata = episode_metadata or {}
+        self.max_steps = max_steps
+        self.arbiter = Arbiter(
+            allow_auto=allow_auto,
+            camera=config.camera,
+            encoder=config.encoder,
+            deadzone=0.0,  # the pad driver already zeroes sticks inside its deadzone
+            on_estop=parts.link.estop,
+        )
+        self.speed = SpeedEstimator(config.encoder.metres_per_tick, config.encoder.speed_window_s)
+        self.plans = PlanBuffer()
+        self.stop_event = threading.Event()
+        self.summary = LoopSummary()
+        self._timings: dict[str, list[float]] = defaultdict(list)
+        self._latency: list[float] = []
+        self._lateness: list[float] = []
+        self._recording = False
+        self._record_paused = False
+        self._step_index = 0
+        self._last_frame_seq = -1
+        self._last_message = ""
+        self.log = log
+
+    # ------------------------------------------------------------------ public
+    def stop(self) -> None:
+        self.stop_event.set()
+
+    def estop(self, why: str) -> None:
+        """For the joystick thread and signal handlers: latch e-stop, on the wire at once."""
+        self.arbiter.estop(why)
+
+    def run(self) -> LoopSummary:
+        clock = self.parts.clock
+        start = clock.now()
+        deadline = start
+        tick = 0
+        try:
+            while not self.stop_event.is_set():
+                if self.max_steps is not None and tick >= self.max_steps:
+                    break
+                self._lateness.append(clock.now() - deadline)
+                if not self._tick(deadline):
+                    break
+                tick += 1
+                deadline += self.period
+                now = clock.now()
+                if now > deadline:
+                    # Late: count it and re-align to the next slot instead of bursting.
+                    missed = math.floor((now - deadline) / self.period) + 1
+                    self.summary.overruns += 1
+                    deadline += missed * self.period
+                clock.sleep_until(deadline)
+        finally:
+            self._shutdown(clock.now() - start, tick)
+        return self.summary
+
+    # ------------------------------------------------------------------ one tick
+    def _tick(self, tick_start: float) -> bool:
+        parts, clock = self.parts, self.parts.clock
+        sections: dict[str, float] = {}
+
+        t = clock.now()
+        frame = parts.camera.latest()
+        joystick = parts.joystick.poll()
+        telemetry = parts.link.telemetry
+        sections["capture"] = clock.now() - t
+
+        t = clock.now()
+        image = preprocess(frame.image, self.config.camera) if frame is not None else None
+        speed = self.speed.update(telemetry.telemetry) if telemetry is not None else 0.0
+        sections["preprocess"] = clock.now() - t
+
+        t = clock.now()
+        plan, plan_action, fallback_action = None, None, None
+        if parts.policy is not None and image is not None and frame.seq != self._last_frame_seq:
+            if t - tick_start > 0.5 * self.period:
+                # Started too late for a fresh plan to be useful: fall back on the last plan.
+                self.summary.skipped_inferences += 1
+                fallback_action = self.plans.fallback()
+            else:
+                plan = parts.policy.predict(image, speed)
+                plan_action = self.plans.fresh(plan)
+                self._last_frame_seq = frame.seq
+        elif parts.policy is not None:
+            fallback_action = self.plans.fallback()
+        sections["inference"] = clock.now() - t
+
+        t = clock.now()
+        now = clock.now()
+        decision = self.arbiter.step(
+            ArbiterInputs(
+                now=now,
+                joystick=joystick,
+                frame_age_s=None if frame is None else now - frame.captured_at,
+                camera_lost=parts.camera.lost,
+                telemetry_age_s=parts.link.telemetry_age_s(),
+                board_state=parts.link.board_state,
+                plan_action=plan_action,
+                fallback_action=fallback_action,
+                board_reason=telemetry.telemetry.reason if telemetry is not None else 0,
+            )
+        )
+        self._report(decision)
+        executed, noisy = (decision.steering, decision.throttle), False
+        if parts.noise is not None and self._recording and decision.mode == Mode.MANUAL:
+            ns, nt, noisy = parts.noise.sample(now)
+            if noisy:
+                executed = parts.noise.apply(executed, (ns, nt))
+        sections["arbitration"] = clock.now() - t
+
+        t = clock.now()
+        self._forward_requests(decision)
+        sent_at = parts.link.set_command(*executed, send_now=True)
+        if sent_at is None:
+            sent_at = math.nan
+        elif frame is not None:
+            self._latency.append(sent_at - frame.captured_at)
+        sections["actuation"] = clock.now() - t
+
+        t = clock.now()
+        self._log(frame, image, telemetry, speed, joystick, plan, plan_action, executed,
+                  decision, noisy, sent_at)  # fmt: skip
+        sections["logging"] = clock.now() - t
+
+        for name, seconds in sections.items():
+            self._timings[name].append(seconds)
+        mode_name = decision.mode.name
+        self.summary.modes_s[mode_name] = self.summary.modes_s.get(mode_name, 0.0) + self.period
+        return not joystick.events.quit
+
+    def _report(self, decision: Decision) -> None:
+        """Tell the human what changed and why a press was refused (once per change)."""
+        message = decision.mode.name
+        if decision.reason:
+            message += f" (neutral: {decision.reason})"
+        if message != self._last_message:
+            self._last_message = message
+            self.log(f"mode {message}")
+        if decision.refused:
+            self.log(f"refused: {decision.refused}")
+
+    def _forward_requests(self, decision: Decision) -> None:
+        link = self.parts.link
+        if decision.clear_request:
+            link.request_clear()
+        if decision.disarm_request:
+            link.disarm()
+        if decision.arm_request:
+            link.request_arm()
+
+    # ------------------------------------------------------------------ recording
+    def _log(self, frame, image, telemetry, speed, joystick, plan, plan_action, executed,
+             decision, noisy, sent_at) -> None:  # fmt: skip
+        sink = self.parts.sink
+        events = joystick.events
+        if self.record and events.toggle_record:
+            self._record_paused = not self._record_paused
+        driving = decision.mode in (Mode.MANUAL, Mode.AUTO)
+        want = self.record and not self._record_paused and (driving or self._recording)
+        if want and not self._recording and driving and image is not None:
+            sink.begin({**self.episode_metadata, "started_mode": decision.mode.name})
+            self._recording = True
+            self.summary.episodes += 1
+        if not self._recording:
+            return
+        if image is not None:
+            step = Step(
+                index=self._step_index,
+                image=image,
+                frame_captured_at=frame.captured_at,
+                command_sent_at=sent_at,
+                wall_time=time.time(),
+                speed_mps=speed,
+                encoder_ticks=telemetry.telemetry.encoder_ticks if telemetry else 0,
+                human_action=(joystick.steering, joystick.throttle),
+                policy_action=plan_action if plan_action is not None else NAN2,
+                executed_action=executed,
+                mode=decision.mode,
+                override=decision.override,
+                estop=decision.mode == Mode.ESTOP,
+                noise=noisy,
+                collision=False,
+                lap=events.lap,
+                plan_mu=None if plan is None else plan.mu,
+                plan_sigma=None if plan is None else plan.sigma,
+            )
+            self._step_index += 1
+            if sink.write(step):
+                self.summary.recorded_steps += 1
+            else:
+                self.summary.dropped_steps += 1
+        if not driving or self._record_paused:
+            reason = {Mode.ESTOP: "estop", Mode.DISARMED: "disarmed"}.get(decision.mode, "stopped")
+            if decision.mode == Mode.DISARMED and self.parts.link.board_state == m.State.FAILSAFE:
+                reason = "failsafe"
+            sink.end(reason)
+            self._recording = False
+
+    # ------------------------------------------------------------------ exit
+    def _shutdown(self, duration: float, ticks: int) -> None:
+        link = self.parts.link
+        link.disarm()
+        link.set_command(0.0, 0.0, send_now=True)
+        if self._recording:
+            self.parts.sink.end("stopped")
+            self._recording = False
+        s = self.summary
+        s.steps, s.duration_s = ticks, duration
+        s.sections_ms = {name: _percentiles(self._timings[name]) for name in SECTIONS}
+        s.frame_to_command_ms = _percentiles(self._latency)
+        s.tick_lateness_ms = _percentiles(self._lateness)
+        s.max_tick_lateness_ms = max(self._lateness, default=math.nan) * 1e3
+        s.interventions = self.arbiter.interventions
+        s.estops = link.counters.estops_sent

@@ -1,0 +1,242 @@
+"""The ONNX policy on the car, and the rule for what to do when it is late.
+
+Everything that can be wrong with a model file (missing, corrupt, wrong inputs, wrong horizon,
+no metadata, trained at another control period) is found here at load time and raised as one
+UserError line, so `carrt drive` refuses before the car is armed instead of steering on
+nonsense at the first tick (DESIGN §4, model_contract).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+
+from carrt import model_contract as mc
+from carrt.config import LoopConfig
+from carrt.errors import UserError
+from carrt.interfaces import CONTROL_PERIOD_S, IMAGE_SHAPE, Plan
+
+CPU = "CPUExecutionProvider"
+TENSORRT = "TensorrtExecutionProvider"
+DEFAULT_PROVIDERS: tuple[str, ...] = tuple(LoopConfig().providers)
+
+_ORT_DTYPES = {"float": "float32", "double": "float64"}
+
+
+def select_providers(preferred: Sequence[str], available: Sequence[str]) -> list[str]:
+    """The configured order, minus what this onnxruntime build lacks, with CPU always last.
+
+    A name onnxruntime has never heard of is a config typo, and is refused rather than
+    skipped: silently running on the CPU because of a misspelt "CUDA" would cost the 10 Hz
+    budget with no explanation.
+    """
+    known = set(ort.get_all_providers())
+    for name in preferred:
+        if name not in known:
+            raise UserError(
+                f"loop.providers: unknown onnxruntime provider {name!r} "
+                f"(known: {', '.join(sorted(known))})"
+            )
+    chosen = [p for p in dict.fromkeys(preferred) if p in available]
+    if CPU in chosen:
+        chosen.remove(CPU)
+    return [*chosen, CPU]
+
+
+def _provider_options(name: str) -> tuple[str, dict[str, Any]] | str:
+    if name != TENSORRT:
+        return name
+    # Building a TensorRT engine takes minutes on a Jetson: cache it between runs.
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "carrt" / "trt"
+    with_cache: dict[str, Any] = {
+        "trt_engine_cache_enable": True,
+        "trt_engine_cache_path": str(cache),
+    }
+    return name, with_cache
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _spec(arg: Any) -> mc.TensorSpec:
+    dtype = arg.type
+    if dtype.startswith("tensor(") and dtype.endswith(")"):
+        dtype = _ORT_DTYPES.get(dtype[7:-1], dtype[7:-1])
+    shape = tuple(arg.shape) if arg.shape is not None else ()
+    return mc.TensorSpec(arg.name, dtype, shape)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+class OnnxPolicy:
+    """The Policy protocol over an onnxruntime session, validated against model_contract.
+
+    control_period_s=None skips the control-period check (for `carrt model info`, which
+    describes a model without a car in mind).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        providers: Sequence[str] = DEFAULT_PROVIDERS,
+        intra_op_threads: int = 0,
+        control_period_s: float | None = CONTROL_PERIOD_S,
+    ) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise UserError(f"model {self.path}: no such file")
+        self.size_bytes = self.path.stat().st_size
+        self.sha256 = file_sha256(self.path)
+        self.available_providers = list(ort.get_available_providers())
+        self.requested_providers = select_providers(providers, self.available_providers)
+        self.fallback_note: str | None = None
+        self._session = self._load(intra_op_threads)
+        self.providers: list[str] = list(self._session.get_providers())
+        self.provider: str = self.providers[0]
+        if self.fallback_note is None and self.provider != self.requested_providers[0]:
+            # onnxruntime drops a provider whose libraries fail to load with only a log line.
+            self.fallback_note = (
+                f"{self.requested_providers[0]} did not initialise; running on {self.provider}"
+            )
+
+        modelmeta = self._session.get_modelmeta()
+        self.metadata: dict[str, str] = dict(modelmeta.custom_metadata_map)
+        self.producer: str = modelmeta.producer_name
+        self.inputs = [_spec(a) for a in self._session.get_inputs()]
+        self.outputs = [_spec(a) for a in self._session.get_outputs()]
+        try:
+            self.horizon: int = mc.validate_metadata(self.metadata, control_period_s)
+            mc.validate_io(self.inputs, self.outputs, self.horizon)
+            low, high = mc.action_bounds(self.metadata)
+        except mc.ContractError as exc:
+            raise UserError(f"model {self.path}: {exc}") from exc
+        self.action_low = np.asarray(low, dtype=np.float32)
+        self.action_high = np.asarray(high, dtype=np.float32)
+        # What the car does without a plan: no steering, no throttle, inside the bounds.
+        self.neutral = np.clip(np.zeros(2, np.float32), self.action_low, self.action_high)
+        self.nonfinite_outputs = 0
+        self.warmup_latencies: list[float] = []
+
+    def _load(self, intra_op_threads: int) -> ort.InferenceSession:
+        options = ort.SessionOptions()
+        options.log_severity_level = 3  # errors only: provider chatter is not the user's problem
+        if intra_op_threads > 0:
+            options.intra_op_num_threads = intra_op_threads
+        wanted = [_provider_options(p) for p in self.requested_providers]
+        try:
+            return ort.InferenceSession(str(self.path), options, providers=wanted)
+        except Exception as exc:
+            if self.requested_providers == [CPU]:
+                raise UserError(
+                    f"model {self.path}: not a valid ONNX model ({_one_line(exc)})"
+                ) from exc
+            gpu_error = _one_line(exc)
+        # A GPU provider can be "available" and still fail (mismatched CUDA/TensorRT libs):
+        # the CPU must still drive, and the user must be told why it is slow.
+        try:
+            session = ort.InferenceSession(str(self.path), options, providers=[CPU])
+        except Exception as exc:
+            raise UserError(
+                f"model {self.path}: not a valid ONNX model ({_one_line(exc)})"
+            ) from exc
+        self.fallback_note = f"fell back to {CPU}: {gpu_error}"
+        return session
+
+    # ------------------------------------------------------------------ inference
+    def _run(self, image: np.ndarray, speed_mps: float) -> tuple[np.ndarray, np.ndarray]:
+        if image.shape != IMAGE_SHAPE or image.dtype != np.uint8:
+            raise ValueError(f"policy input must be {IMAGE_SHAPE} uint8, got {image.shape}")
+        feeds = {
+            mc.INPUT_IMAGE: np.ascontiguousarray(image)[None],
+            mc.INPUT_SPEED: np.array([[speed_mps]], dtype=np.float32),
+        }
+        mu, sigma = self._session.run([mc.OUTPUT_MU, mc.OUTPUT_SIGMA], feeds)
+        want = (1, self.horizon, 2)
+        if mu.shape != want or sigma.shape != want:
+            raise UserError(
+                f"model {self.path}: outputs have shapes {list(mu.shape)} and "
+                f"{list(sigma.shape)} at run time, expected {list(want)}"
+            )
+        return mu[0].astype(np.float32, copy=False), sigma[0].astype(np.float32, copy=False)
+
+    def predict(self, image: np.ndarray, speed_mps: float) -> Plan:
+        """One frame in, the clipped plan out. Never hands the loop a NaN.
+
+        A non-finite step is replaced by neutral and counted (nonfinite_outputs), because a
+        NaN throttle must not reach the car; warm-up refuses a model that does this at once.
+        """
+        mu, sigma = self._run(image, speed_mps)
+        if not np.isfinite(mu).all():
+            self.nonfinite_outputs += 1
+            mu = np.where(np.isfinite(mu), mu, self.neutral)
+        mu = np.clip(mu, self.action_low, self.action_high)
+        return Plan(mu=mu, sigma=sigma)
+
+    def warm_up(self, n: int = 5) -> list[float]:
+        """Run n inferences before arming: the first ones allocate and (TensorRT) build.
+
+        Returns the latencies in seconds (wall time, not the loop's clock, which may be
+        simulated). Raises UserError when the model answers with NaN/inf on a plain frame.
+        """
+        image = np.full(IMAGE_SHAPE, 128, dtype=np.uint8)
+        latencies = []
+        for _ in range(n):
+            start = time.perf_counter()
+            mu, sigma = self._run(image, 0.0)
+            latencies.append(time.perf_counter() - start)
+            if not (np.isfinite(mu).all() and np.isfinite(sigma).all()):
+                raise UserError(f"model {self.path}: outputs NaN or inf on a grey frame")
+        self.warmup_latencies = latencies
+        return latencies
+
+
+class PlanBuffer:
+    """DESIGN §4: on an overrun, the next step of the previous plan may be used once; then
+    neutral. A plan is a prediction from an older frame, so it is trusted for one extra
+    period at most (the paper's horizon exists for training, not for driving blind).
+    """
+
+    def __init__(self) -> None:
+        self._plan: Plan | None = None
+        self._spent = True
+
+    @property
+    def plan(self) -> Plan | None:
+        """The last fresh plan (for recording plan_mu / plan_sigma)."""
+        return self._plan
+
+    def fresh(self, plan: Plan) -> tuple[float, float]:
+        """Store a new plan; return its first step, the action to execute now."""
+        self._plan = plan
+        self._spent = False
+        return float(plan.mu[0, 0]), float(plan.mu[0, 1])
+
+    def fallback(self) -> tuple[float, float] | None:
+        """The previous plan's next step, the first time after a fresh plan; else None
+        (the caller sends neutral)."""
+        if self._spent or self._plan is None or len(self._plan.mu) < 2:
+            self._spent = True
+            return None
+        self._spent = True
+        return float(self._plan.mu[1, 0]), float(self._plan.mu[1, 1])
+
+    def clear(self) -> None:
+        """Forget the plan (mode change, disarm, e-stop): nothing stale survives it."""
+        self._plan = None
+        self._spent = True
