@@ -21,7 +21,7 @@ from typing import TextIO
 from carrt import config as car_config
 from carrt.errors import UserError
 from firmware_bridge import messages as m
-from firmware_bridge.link import BoardLink
+from firmware_bridge.link import BoardLink, LinkError
 
 SMALL_STEP_US = 10
 LARGE_STEP_US = 50
@@ -35,11 +35,13 @@ class CalibrationStep:
     prompt: str
 
 
+# Neutral and centre come first: a disarmed board already outputs them, so they need no
+# arming, and the steps that do arm need a car that stands still (the board checks).
 STEPS = (
+    CalibrationStep("throttle_neutral_us", 0.0, 0.0, "car on a stand: wheels not creeping"),
     CalibrationStep("steer_center_us", 0.0, 0.0, "front wheels pointing straight ahead"),
     CalibrationStep("steer_left_us", -1.0, 0.0, "full left lock, servo not straining"),
     CalibrationStep("steer_right_us", 1.0, 0.0, "full right lock, servo not straining"),
-    CalibrationStep("throttle_neutral_us", 0.0, 0.0, "car on a stand: wheels not creeping"),
 )
 
 HELP = "  + / - : ±10 us   ++ / -- : ±50 us   a number: that pulse   Enter: accept   q: quit"
@@ -84,12 +86,20 @@ def _show(link: BoardLink, feeder: _Feeder, board: m.Config, step: CalibrationSt
     """Apply a candidate config and hold the step's command; return an error text or None."""
     feeder.command = (0.0, 0.0)
     _disarm_and_wait(link)
-    link.wait_until_still()
     ack = link.send_config(board)
     if ack.result != m.ConfigResult.ACCEPTED:
         return f"board refused it ({m.ConfigResult(ack.result).name.lower().replace('_', ' ')})"
+    if (step.steering, step.throttle) == (0.0, 0.0):
+        return None  # a disarmed board outputs centre and neutral by itself
     if link.board_state in (m.State.ESTOP, m.State.FAILSAFE):
         link.clear()
+    try:
+        link.wait_until_still()
+    except LinkError as exc:
+        raise UserError(
+            f"the wheels keep turning at throttle_neutral_us={board.throttle_neutral_us}: "
+            "calibrate the neutral first"
+        ) from exc
     link.arm()
     feeder.command = (step.steering, step.throttle)
     return None

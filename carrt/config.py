@@ -131,7 +131,13 @@ class NoiseConfig:
 
 @dataclass
 class LoopConfig:
-    rate_hz: float = opt(10.0, "control rate (the paper: 10 Hz)", lo=1.0, hi=100.0)
+    rate_hz: float = opt(
+        10.0,
+        "control rate (the paper: 10 Hz); at least 5: the board fails safe when the decision "
+        "has not changed for 300 ms",
+        lo=5.0,
+        hi=100.0,
+    )
     providers: list = opt(
         ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"],
         "onnxruntime providers in order of preference (those not available are skipped)",

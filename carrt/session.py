@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import signal
 import threading
 import time
@@ -52,6 +53,7 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", help="episode directory (overrides episodes.dir)")
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--seed", type=int, default=0, help="noise injection seed")
+    parser.add_argument("--summary-json", help="also write the end-of-run summary here")
 
 
 def load_config(args: argparse.Namespace) -> car_config.CarConfig:
@@ -153,6 +155,8 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
         )
         summary = loop.run()
     print(summary.render())
+    if args.summary_json:
+        Path(args.summary_json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
     if link.error is not None:
         raise link.error
     return 0

@@ -185,3 +185,33 @@ def test_summary_reports_rate_and_sections(tmp_path, board, video, capsys):
         assert section in out
     hz = float(out.split(" Hz")[0].split("= ")[-1])
     assert math.isclose(hz, 10.0, rel_tol=0.1)
+
+
+def test_estop_button_beats_the_loop_tick(tmp_path, board, video):
+    """The e-stop goes out from the joystick thread, not at the next 200 ms loop tick.
+
+    Were it sent by the loop, its latency would be uniform over the 200 ms period, and three
+    trials under 50 ms would happen by chance 1.6 % of the time.
+    """
+    run = CliRun(
+        cli_args("teleop", board, video, tmp_path / "eps", "--set", "loop.rate_hz=5.0", duration=12)
+    )
+    pad = SyntheticPad()
+    arm(pad, board)
+    for trial in range(3):
+        pad.sticks(0.0, 0.4)
+        wait_for(lambda: board.throttle_us > 1550, timeout_s=3.0)
+        posted = time.monotonic()
+        pad.press("estop")
+        wait_for(lambda: board.state == m.State.ESTOP, timeout_s=2.0)
+        assert time.monotonic() - posted < 0.05, f"trial {trial}: e-stop waited for a loop tick"
+        pad.sticks(0.0, 0.0)
+        if trial < 2:
+            time.sleep(0.5)  # the loop sees the neutral sticks
+            pad.press("clear")
+            wait_for(lambda: board.state == m.State.DISARMED, timeout_s=3.0)
+            wait_for(lambda: board.plant.speed_mps == 0.0)
+            time.sleep(0.5)
+            pad.press("arm")
+            wait_for(lambda: board.state == m.State.ARMED, timeout_s=3.0)
+    assert run.result() == 0
