@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 
 class WallClock:
@@ -27,19 +28,32 @@ class WallClock:
 
 
 class SimClock:
-    """Simulated seconds: sleep_until jumps straight to the deadline."""
+    """Simulated seconds: sleep_until advances time in small steps and lets the world move.
 
-    def __init__(self, start: float = 0.0) -> None:
+    Listeners (the simulated car, the in-process board) are called after every step with the
+    new time and the step length, so everything that happens "while the loop sleeps" happens
+    at the right simulated moment, only faster.
+    """
+
+    def __init__(self, start: float = 0.0, step_s: float = 0.002) -> None:
         self._t = start
+        self.step_s = step_s
+        self._listeners: list[Callable[[float, float], None]] = []
         self._lock = threading.Lock()
 
     def now(self) -> float:
         return self._t
 
+    def add_listener(self, listener: Callable[[float, float], None]) -> None:
+        self._listeners.append(listener)
+
     def sleep_until(self, deadline: float) -> None:
         with self._lock:
-            self._t = max(self._t, deadline)
+            while self._t < deadline - 1e-9:
+                dt = min(self.step_s, deadline - self._t)
+                self._t += dt
+                for listener in self._listeners:
+                    listener(self._t, dt)
 
     def advance(self, dt: float) -> None:
-        with self._lock:
-            self._t += dt
+        self.sleep_until(self._t + dt)

@@ -49,6 +49,9 @@ class LoopParts:
     policy: Policy | None = None
     sink: EpisodeSink | None = None
     noise: NoiseInjector | None = None
+    # The simulator knows when the car hit something: True once per collision. On the real
+    # car this stays None and the human's e-stop is the collision signal (as in the paper).
+    collisions: Callable[[], bool] | None = None
 
 
 @dataclass
@@ -143,6 +146,7 @@ class ControlLoop:
         self._step_index = 0
         self._last_frame_seq = -1
         self._last_message = ""
+        self._collision_ended = False
         self.log = log
 
     # ------------------------------------------------------------------ public
@@ -187,6 +191,10 @@ class ControlLoop:
         frame = parts.camera.latest()
         joystick = parts.joystick.poll()
         telemetry = parts.link.telemetry
+        collided = parts.collisions() if parts.collisions is not None else False
+        if collided:
+            self.arbiter.estop("collision")
+            self._collision_ended = True
         sections["capture"] = clock.now() - t
 
         t = clock.now()
@@ -225,6 +233,8 @@ class ControlLoop:
             )
         )
         self._report(decision)
+        if decision.mode != Mode.ESTOP:
+            self._collision_ended = False  # a later e-stop by hand is not this collision
         executed, noisy = (decision.steering, decision.throttle), False
         if parts.noise is not None and self._recording and decision.mode == Mode.MANUAL:
             ns, nt, noisy = parts.noise.sample(now)
@@ -243,7 +253,7 @@ class ControlLoop:
 
         t = clock.now()
         self._log(frame, image, telemetry, speed, joystick, plan, plan_action, executed,
-                  decision, noisy, sent_at)  # fmt: skip
+                  decision, noisy, sent_at, collided)  # fmt: skip
         sections["logging"] = clock.now() - t
 
         for name, seconds in sections.items():
@@ -274,7 +284,7 @@ class ControlLoop:
 
     # ------------------------------------------------------------------ recording
     def _log(self, frame, image, telemetry, speed, joystick, plan, plan_action, executed,
-             decision, noisy, sent_at) -> None:  # fmt: skip
+             decision, noisy, sent_at, collided) -> None:  # fmt: skip
         sink = self.parts.sink
         events = joystick.events
         if self.record and events.toggle_record:
@@ -303,7 +313,7 @@ class ControlLoop:
                 override=decision.override,
                 estop=decision.mode == Mode.ESTOP,
                 noise=noisy,
-                collision=False,
+                collision=collided,
                 lap=events.lap,
                 plan_mu=None if plan is None else plan.mu,
                 plan_sigma=None if plan is None else plan.sigma,
@@ -315,10 +325,13 @@ class ControlLoop:
                 self.summary.dropped_steps += 1
         if not driving or self._record_paused:
             reason = {Mode.ESTOP: "estop", Mode.DISARMED: "disarmed"}.get(decision.mode, "stopped")
+            if decision.mode == Mode.ESTOP and self._collision_ended:
+                reason = "collision"
             if decision.mode == Mode.DISARMED and self.parts.link.board_state == m.State.FAILSAFE:
                 reason = "failsafe"
             sink.end(reason)
             self._recording = False
+            self._collision_ended = False
 
     # ------------------------------------------------------------------ exit
     def _shutdown(self, duration: float, ticks: int) -> None:

@@ -16,6 +16,7 @@ import json
 import signal
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,11 +34,21 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "teleop", help="drive with the joystick; with --record, record expert episodes"
     )
     _common_arguments(teleop)
+    teleop.add_argument(
+        "--expert",
+        choices=("auto",),
+        help="with --sim: the scripted expert drives instead of a person",
+    )
     teleop.set_defaults(func=run_teleop)
     drive = subparsers.add_parser(
         "drive", help="let a policy drive; the joystick overrides and e-stops"
     )
     drive.add_argument("--model", required=True, help="policy .onnx exported by `python -m export`")
+    drive.add_argument(
+        "--autopilot",
+        action="store_true",
+        help="with --sim: arm, engage AUTO, and reset the car after every collision",
+    )
     _common_arguments(drive)
     drive.set_defaults(func=run_drive)
 
@@ -54,6 +65,21 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--seed", type=int, default=0, help="noise injection seed")
     parser.add_argument("--summary-json", help="also write the end-of-run summary here")
+    sim = parser.add_argument_group("simulator (no car needed)")
+    sim.add_argument("--sim", action="store_true", help="drive the built-in simulator")
+    sim.add_argument("--layout", default="easy", choices=("empty", "easy", "hard"))
+    sim.add_argument("--track-seed", type=int, default=0, help="obstacle placement seed")
+    sim.add_argument(
+        "--realtime",
+        action="store_true",
+        help="run at wall-clock speed through the pty (default when a person drives)",
+    )
+    sim.add_argument("--episodes", type=int, help="stop after this many episodes")
+    sim.add_argument("--laps", type=int, help="end an episode after this many laps")
+    sim.add_argument("--plot", help="write the run's top-down trajectory plot here (PNG)")
+    sim.add_argument(
+        "--pad", action="store_true", help="drive the simulator with a joystick (default: keyboard)"
+    )
 
 
 def load_config(args: argparse.Namespace) -> car_config.CarConfig:
@@ -77,12 +103,49 @@ def run_drive(args: argparse.Namespace) -> int:
     return _run(args, load_config(args), model_path=args.model)
 
 
+@dataclass
+class Rig:
+    """What the loop drives: the real car, or the simulator standing in for it."""
+
+    clock: Any
+    camera: Any
+    link: BoardLink
+    joystick: Any
+    describe: str
+    collisions: Any = None
+    pilot: Any = None  # the simulator's stand-in for the human, when there is one
+    finish: Any = None  # called with the loop summary (the simulator prints its metrics)
+
+
+def open_car_rig(stack: contextlib.ExitStack, args: argparse.Namespace, config) -> Rig:
+    """The real car: OpenCV camera, serial board, pygame pad; each checked before the next."""
+    from carrt.camera import OpenCVCamera
+    from carrt.joystick import PygameJoystick
+
+    camera = OpenCVCamera(config.camera, clock=WallClock())
+    camera.start()
+    stack.callback(camera.stop)
+    _wait_first_frame(camera, config.camera.source)
+    link = BoardLink(
+        config.serial.port,
+        config.serial.baud,
+        handshake_timeout_s=config.serial.handshake_timeout_s,
+    )
+    link.open()
+    stack.callback(link.close)
+    return Rig(
+        clock=WallClock(),
+        camera=camera,
+        link=link,
+        joystick=PygameJoystick(config.joystick),
+        describe=f"board on {config.serial.port}, camera {config.camera.source}",
+    )
+
+
 def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str | None) -> int:
     # Imported here: OpenCV, onnxruntime and pygame cost a second of start-up on a Jetson,
     # which `carrt check` and `carrt episodes` should not pay.
-    from carrt.camera import OpenCVCamera
     from carrt.episodes.writer import EpisodeWriter
-    from carrt.joystick import PygameJoystick
     from carrt.loop import ControlLoop, LoopParts
     from carrt.noise import NoiseInjector
     from carrt.policy import OnnxPolicy
@@ -99,18 +162,13 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
         print(f"model {Path(model_path).name}: {policy.provider}, warm-up {warm[-1] * 1e3:.1f} ms")
 
     with contextlib.ExitStack() as stack:
-        camera = OpenCVCamera(config.camera, clock=WallClock())
-        camera.start()
-        stack.callback(camera.stop)
-        _wait_first_frame(camera, config.camera.source)
+        if getattr(args, "sim", False):
+            from carrt.sim.rig import open_sim_rig
 
-        link = BoardLink(
-            config.serial.port,
-            config.serial.baud,
-            handshake_timeout_s=config.serial.handshake_timeout_s,
-        )
-        link.open()
-        stack.callback(link.close)
+            rig = open_sim_rig(stack, args, config, driving=policy is not None)
+        else:
+            rig = open_car_rig(stack, args, config)
+        link = rig.link
         ack = link.send_config(car_config.board_config(config))
         if ack.result != 0:
             raise UserError(
@@ -126,35 +184,37 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
                 sync_every_s=config.episodes.sync_every_s,
             )
             stack.callback(sink.close)
-        joystick = PygameJoystick(config.joystick)
         parts = LoopParts(
-            clock=WallClock(),
-            camera=camera,
+            clock=rig.clock,
+            camera=rig.camera,
             link=link,
-            joystick=joystick,
+            joystick=rig.joystick,
             policy=policy,
             sink=sink,
             noise=NoiseInjector(config.noise, seed=args.seed) if policy is None else None,
+            collisions=rig.collisions,
         )
+        metadata = _episode_metadata(config, policy, link, "drive" if policy else "teleop")
+        if getattr(args, "sim", False):
+            metadata["sim"] = {"layout": args.layout, "track_seed": args.track_seed}
         loop = ControlLoop(
             parts,
             config,
             allow_auto=policy is not None,
             record=args.record,
-            episode_metadata=_episode_metadata(
-                config, policy, link, "drive" if policy else "teleop"
-            ),
+            episode_metadata=metadata,
             max_steps=None if args.duration is None else round(args.duration * config.loop.rate_hz),
         )
-        joystick.start(on_estop=lambda: loop.estop("joystick"))
-        stack.callback(joystick.stop)
+        if rig.pilot is not None:
+            rig.pilot.mode_source = lambda: loop.arbiter.mode
+        rig.joystick.start(on_estop=lambda: loop.estop("joystick"))
+        stack.callback(rig.joystick.stop)
         _stop_on_signals(loop)
-        print(
-            f"carrt {'drive' if policy else 'teleop'}: board on {config.serial.port}, "
-            f"camera {config.camera.source}; arm with the pad's arm button (sticks centred)"
-        )
+        print(f"carrt {'drive' if policy else 'teleop'}: {rig.describe}")
         summary = loop.run()
     print(summary.render())
+    if rig.finish is not None:
+        rig.finish(summary)
     if args.summary_json:
         Path(args.summary_json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
     if link.error is not None:

@@ -23,6 +23,17 @@ class Plant(Protocol):
         ...
 
 
+def pulse_to_unit(
+    pulse_us: int, low_us: int, mid_us: int, high_us: int, deadband_us: int = 0
+) -> float:
+    """What a servo or ESC makes of a pulse: -1 at low, 0 at mid (± deadband), +1 at high."""
+    offset = pulse_us - mid_us
+    if abs(offset) <= deadband_us:
+        return 0.0
+    span = high_us - mid_us if offset > 0 else mid_us - low_us
+    return max(-1.0, min(1.0, offset / span)) if span else 0.0
+
+
 @dataclass
 class WheelPlant:
     """A wheel driven by an ESC: first-order speed lag, a neutral deadband, a real encoder.
@@ -44,15 +55,13 @@ class WheelPlant:
     distance_m: float = 0.0
 
     def throttle_fraction(self, throttle_us: int) -> float:
-        offset = throttle_us - self.esc_neutral_us
-        if abs(offset) <= self.esc_deadband_us:
-            return 0.0
-        span = (
-            self.esc_forward_us - self.esc_neutral_us
-            if offset > 0
-            else self.esc_neutral_us - self.esc_reverse_us
+        return pulse_to_unit(
+            throttle_us,
+            self.esc_reverse_us,
+            self.esc_neutral_us,
+            self.esc_forward_us,
+            self.esc_deadband_us,
         )
-        return max(-1.0, min(1.0, offset / span)) if span else 0.0
 
     def step(self, dt_s: float, steer_us: int, throttle_us: int) -> int:
         del steer_us  # a wheel on a stand does not care where the front wheels point

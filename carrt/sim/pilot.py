@@ -1,0 +1,108 @@
+"""The human's stand-in in the simulator, behind the Joystick interface.
+
+It does what the person with the pad does in the paper's experiments: arms the car once it
+stands still, drives it (with the scripted expert's sticks) or hands it to the policy (AUTO),
+and after a collision resets the car onto the track, clears the e-stop and starts again. It
+goes through the same arbitration and the same board as a person would: it only presses
+buttons and moves sticks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from carrt.interfaces import JoystickEvents, JoystickState, Mode
+
+SETTLE_S = 0.5  # wait after a reset or a clear before the next press, as a person would
+
+
+@dataclass
+class PilotLog:
+    episodes: int = 0
+    collisions: int = 0
+    laps: int = 0
+
+
+class SimPilot:
+    def __init__(
+        self,
+        plant: Any,
+        clock: Any,
+        *,
+        expert: Any = None,
+        engage_auto: bool = False,
+        episodes: int | None = None,
+        laps_per_episode: int | None = None,
+    ) -> None:
+        self.plant = plant
+        self.clock = clock
+        self.expert = expert
+        self.engage_auto = engage_auto
+        self.max_episodes = episodes
+        self.laps_per_episode = laps_per_episode
+        self.mode_source: Callable[[], Mode] = lambda: Mode.DISARMED
+        self.log = PilotLog()
+        self._mode = Mode.DISARMED
+        self._since = clock.now()
+        self._laps_at_arm = 0
+        self._last_laps = 0
+
+    # Joystick interface ------------------------------------------------------------
+    def start(self, on_estop: Callable[[], None]) -> None:
+        del on_estop  # a simulated person never yanks the pad out
+
+    def stop(self) -> None:
+        pass
+
+    def poll(self) -> JoystickState:
+        now = self.clock.now()
+        mode = self.mode_source()
+        if mode != self._mode:
+            self._on_mode_change(self._mode, mode, now)
+        world = self.plant.world
+        with self.plant.lock:
+            state = world.state
+            laps = world.laps
+            self._last_laps = laps
+            sticks = (0.0, 0.0)
+            if mode == Mode.MANUAL and self.expert is not None and not self.engage_auto:
+                sticks = self.expert.act(state)
+        events = self._decide(mode, now, laps)
+        return JoystickState(
+            connected=True,
+            steering=float(sticks[0]),
+            throttle=float(sticks[1]),
+            neutral_since_connect=True,
+            events=events,
+        )
+
+    # The person's decisions ----------------------------------------------------------
+    def _on_mode_change(self, old: Mode, new: Mode, now: float) -> None:
+        self._mode, self._since = new, now
+        if new in (Mode.MANUAL, Mode.AUTO) and old == Mode.DISARMED:
+            self._laps_at_arm = self._last_laps
+        if new == Mode.ESTOP:
+            self.log.episodes += 1
+            if self.plant.world.collided:
+                self.log.collisions += 1
+            self.plant.reset()  # carry the car back onto the track
+
+    def _decide(self, mode: Mode, now: float, laps: int) -> JoystickEvents:
+        if self.max_episodes is not None and self.log.episodes >= self.max_episodes:
+            return JoystickEvents(quit=True)
+        waited = now - self._since >= SETTLE_S
+        if mode == Mode.DISARMED:
+            return JoystickEvents(arm=waited and abs(self.plant.world.state.v) < 0.01)
+        if mode == Mode.ESTOP:
+            return JoystickEvents(clear=waited)
+        driving_laps = laps - self._laps_at_arm
+        if self.laps_per_episode is not None and driving_laps >= self.laps_per_episode:
+            self.log.episodes += 1
+            self.log.laps += driving_laps
+            self._laps_at_arm = laps
+            return JoystickEvents(arm=True)  # disarm: this episode is complete
+        if mode == Mode.MANUAL and self.engage_auto:
+            return JoystickEvents(toggle_auto=True)
+        return JoystickEvents()

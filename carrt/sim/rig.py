@@ -1,0 +1,148 @@
+"""The simulator as a rig for `carrt teleop --sim` and `carrt drive --sim`.
+
+Real time: the simulated car is the plant of the virtual board (the C core behind a pty), the
+camera renders on its own thread, and the real BoardLink talks over the pty — the full stack,
+only the physical world replaced. Simulated clock (the default when no person drives): the
+same loop, arbitration and C core, with the link in-process (DirectBoardLink) and time jumping
+ahead, so hours of driving take minutes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from carrt.clock import SimClock, WallClock
+from carrt.sim.camera import SimCamera
+from carrt.sim.pilot import SimPilot
+from carrt.sim.plant import SimPlant
+from firmware_bridge.link import BoardLink
+
+
+@dataclass
+class Tracker:
+    """Samples the car once per control tick: the paper's metrics are computed from this."""
+
+    plant: SimPlant
+    clock: Any
+    t: list[float] = field(default_factory=list)
+    x: list[float] = field(default_factory=list)
+    y: list[float] = field(default_factory=list)
+    speed: list[float] = field(default_factory=list)
+    progress: list[float] = field(default_factory=list)
+    collision: list[bool] = field(default_factory=list)
+    lap: list[bool] = field(default_factory=list)
+    _laps: int = 0
+
+    def tick(self) -> bool:
+        """Record this tick; report (once) whether the car collided since the last tick."""
+        collided = self.plant.take_collision()
+        with self.plant.lock:
+            world = self.plant.world
+            state = world.state
+            self.t.append(self.clock.now())
+            self.x.append(state.x)
+            self.y.append(state.y)
+            self.speed.append(state.v)
+            self.progress.append(world.progress)
+            self.collision.append(collided)
+            self.lap.append(world.laps > self._laps)
+            self._laps = world.laps
+        return collided
+
+
+def open_sim_rig(
+    stack: contextlib.ExitStack, args: argparse.Namespace, config: Any, *, driving: bool
+) -> Any:
+    from carrt.session import Rig  # the rig dataclass lives with the car's rig
+    from carrt.sim.expert import ScriptedExpert
+    from carrt.sim.render import Renderer
+    from carrt.sim.world import SimWorld
+
+    world = SimWorld(layout=args.layout, seed=args.track_seed)
+    plant = SimPlant(world)
+    scripted = getattr(args, "expert", None) == "auto" or getattr(args, "autopilot", False)
+    realtime = args.realtime or not scripted
+    if realtime:
+        from firmware_bridge.virtual import VirtualBoard
+
+        clock: Any = WallClock()
+        board = VirtualBoard(plant).start()
+        stack.callback(board.stop)
+        link = BoardLink(board.port).open()
+        where = f"in real time, virtual board on {board.port}"
+    else:
+        from firmware_bridge.direct import DirectBoardLink
+
+        clock = SimClock(step_s=0.002)
+        link = DirectBoardLink(plant, clock).open()
+        where = "on the simulated clock"
+    stack.callback(link.close)
+    camera = SimCamera(plant, Renderer(world.track), clock, realtime=realtime)
+    camera.start()
+    stack.callback(camera.stop)
+
+    pilot = None
+    if scripted:
+        expert = None if driving else ScriptedExpert(world.track, world.params)
+        pilot = SimPilot(
+            plant,
+            clock,
+            expert=expert,
+            engage_auto=driving,
+            episodes=args.episodes,
+            laps_per_episode=args.laps,
+        )
+        joystick: Any = pilot
+    elif getattr(args, "pad", False):
+        from carrt.joystick import PygameJoystick
+
+        joystick = PygameJoystick(config.joystick)
+    else:
+        from carrt.sim.keyboard import KeyboardPad
+        from carrt.sim.render import top_down
+
+        joystick = KeyboardPad(
+            plant,
+            camera,
+            renderer_map=lambda p: top_down(world.track, poses=[p.pose()]),
+            max_throttle=config.joystick.max_throttle,
+        )
+    tracker = Tracker(plant, clock)
+    return Rig(
+        clock=clock,
+        camera=camera,
+        link=link,
+        joystick=joystick,
+        describe=f"simulator, layout {args.layout} seed {args.track_seed}, {where}",
+        collisions=tracker.tick,
+        pilot=pilot,
+        finish=lambda summary: _finish(args, world, tracker, summary),
+    )
+
+
+def _finish(args: argparse.Namespace, world: Any, tracker: Tracker, summary: Any) -> None:
+    """Print the paper's simulation metrics for this run; plot and save them when asked."""
+    from carrt.sim import metrics
+
+    result = metrics.run_metrics(world.track, tracker)
+    print(metrics.format_metrics(result))
+    out = Path(args.out) if getattr(args, "out", None) else None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "sim_metrics.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
+    if args.plot:
+        metrics.plot_trajectory(
+            world.track,
+            tracker.x,
+            tracker.y,
+            tracker.collision,
+            args.plot,
+            title=f"{args.layout} seed {args.track_seed}",
+            speeds=tracker.speed,
+        )
+        print(f"trajectory plot: {args.plot}")
