@@ -183,7 +183,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    runs = build_report(args.paths, per_episode=args.per_episode)
+    from carrt.sim.runs import find_runs, load_metrics, render_sim_table
+
+    sim_runs = find_runs(args.paths)
+    if sim_runs:  # the paper's simulation table, from the runs' saved trajectories
+        print("simulation (sim-runs/*.npz; plots beside them)")
+        print(render_sim_table([load_metrics(p) for p in sim_runs]))
+        print()
+    try:
+        runs = build_report(args.paths, per_episode=args.per_episode)
+    except UserError:
+        if sim_runs:
+            return 0  # runs without recorded episodes: the simulation table is the report
+        raise
     print(render_table(runs))
     if args.json:
         out = Path(args.json)

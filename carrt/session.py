@@ -16,7 +16,7 @@ import json
 import signal
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -82,8 +82,13 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+# The simulated car has no gearbox to strip: let it use the whole throttle range unless the
+# user says otherwise (a real car's config starts at half throttle).
+SIM_DEFAULTS = ("pwm.max_forward=1.0", "pwm.max_reverse=1.0")
+
+
 def load_config(args: argparse.Namespace) -> car_config.CarConfig:
-    overrides = list(args.set)
+    overrides = [*(SIM_DEFAULTS if getattr(args, "sim", False) else ()), *args.set]
     for flag, key in (
         ("port", "serial.port"),
         ("camera", "camera.source"),
@@ -113,7 +118,7 @@ class Rig:
     joystick: Any
     describe: str
     collisions: Any = None
-    pilot: Any = None  # the simulator's stand-in for the human, when there is one
+    follows_mode: list = field(default_factory=list)  # things that need the loop's mode
     finish: Any = None  # called with the loop summary (the simulator prints its metrics)
 
 
@@ -205,8 +210,8 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             episode_metadata=metadata,
             max_steps=None if args.duration is None else round(args.duration * config.loop.rate_hz),
         )
-        if rig.pilot is not None:
-            rig.pilot.mode_source = lambda: loop.arbiter.mode
+        for follower in rig.follows_mode:  # the sim's pilot and trajectory tracker
+            follower.mode_source = lambda: loop.arbiter.mode
         rig.joystick.start(on_estop=lambda: loop.estop("joystick"))
         stack.callback(rig.joystick.stop)
         _stop_on_signals(loop)

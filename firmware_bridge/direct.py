@@ -26,7 +26,13 @@ class _CoreWire:
         self.link = link
 
     def write(self, data: bytes) -> int:
-        self.link.core.feed(data, self.link.now_ms())
+        core = self.link.core
+        core.feed(data, self.link.now_ms())
+        # Answers (PONG, CONFIG_ACK) come back at once, as over a wire with no delay: a request
+        # must not wait for simulated time that only passes while the loop sleeps.
+        out = core.take_output()
+        if out:
+            self.link._dispatch_bytes(out)
         return len(data)
 
     def close(self) -> None:
@@ -52,7 +58,6 @@ class DirectBoardLink(BoardLink):
         self._tick_offset = self.plant.step(0.0, 1500, 1500)
         self._ser = _CoreWire(self)  # type: ignore[assignment]
         self._write(_hello_request())
-        self._dispatch_bytes(self.core.take_output())
         if self.board is None:
             raise HandshakeTimeout("the in-process firmware core did not say HELLO")
         self._connected.set()

@@ -10,7 +10,7 @@ buttons and moves sticks.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from carrt.interfaces import JoystickEvents, JoystickState, Mode
@@ -63,13 +63,16 @@ class SimPilot:
             self._on_mode_change(self._mode, mode, now)
         world = self.plant.world
         with self.plant.lock:
-            state = world.state
+            state = world.car
             laps = world.laps
+            new_lap = laps > self._last_laps  # the person presses the lap button at the line
             self._last_laps = laps
             sticks = (0.0, 0.0)
             if mode == Mode.MANUAL and self.expert is not None and not self.engage_auto:
                 sticks = self.expert.act(state)
         events = self._decide(mode, now, laps)
+        if new_lap:
+            events = replace(events, lap=True)
         return JoystickState(
             connected=True,
             steering=float(sticks[0]),
@@ -94,7 +97,7 @@ class SimPilot:
             return JoystickEvents(quit=True)
         waited = now - self._since >= SETTLE_S
         if mode == Mode.DISARMED:
-            return JoystickEvents(arm=waited and abs(self.plant.world.state.v) < 0.01)
+            return JoystickEvents(arm=waited and abs(self.plant.world.car.v) < 0.01)
         if mode == Mode.ESTOP:
             return JoystickEvents(clear=waited)
         driving_laps = laps - self._laps_at_arm

@@ -36,6 +36,7 @@ class SimPlant:
         self._collisions = 0
         self._collisions_reported = 0
         self.last_collision = ""
+        self._was_collided = False
 
     def step(self, dt_s: float, steer_us: int, throttle_us: int) -> int:
         c = self.calibration
@@ -46,10 +47,11 @@ class SimPlant:
         with self.lock:
             if dt_s > 0:
                 info = self.world.step(dt_s, steering, throttle)
-                if info.collision:
+                if info.collision and not self._was_collided:  # the world stays collided
                     self._collisions += 1
                     self.last_collision = info.collided_with
-            return self.world.state.encoder_ticks
+                self._was_collided = info.collision
+            return self.world.car.encoder_ticks
 
     def take_collision(self) -> bool:
         """True once for each collision since the last call (the loop labels and e-stops)."""
@@ -62,8 +64,9 @@ class SimPlant:
         """Put the car back on the track after a collision (the paper's auto-reset)."""
         with self.lock:
             self.world.reset()
+            self._was_collided = False
 
     def pose(self) -> tuple[float, float, float]:
         with self.lock:
-            state = self.world.state
+            state = self.world.car
             return state.x, state.y, state.yaw

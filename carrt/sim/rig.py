@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from carrt.clock import SimClock, WallClock
+from carrt.interfaces import Mode
 from carrt.sim.camera import SimCamera
 from carrt.sim.pilot import SimPilot
 from carrt.sim.plant import SimPlant
@@ -36,14 +37,17 @@ class Tracker:
     progress: list[float] = field(default_factory=list)
     collision: list[bool] = field(default_factory=list)
     lap: list[bool] = field(default_factory=list)
+    resetting: list[bool] = field(default_factory=list)
+    mode_source: Any = None  # the loop's mode: time stopped after a crash is reset time
     _laps: int = 0
+    _armed_once: bool = False
 
     def tick(self) -> bool:
         """Record this tick; report (once) whether the car collided since the last tick."""
         collided = self.plant.take_collision()
         with self.plant.lock:
             world = self.plant.world
-            state = world.state
+            state = world.car
             self.t.append(self.clock.now())
             self.x.append(state.x)
             self.y.append(state.y)
@@ -52,6 +56,10 @@ class Tracker:
             self.collision.append(collided)
             self.lap.append(world.laps > self._laps)
             self._laps = world.laps
+        mode = self.mode_source() if self.mode_source is not None else Mode.MANUAL
+        driving = mode in (Mode.MANUAL, Mode.AUTO)
+        self._armed_once = self._armed_once or driving
+        self.resetting.append(self._armed_once and not driving)
         return collided
 
 
@@ -120,29 +128,28 @@ def open_sim_rig(
         joystick=joystick,
         describe=f"simulator, layout {args.layout} seed {args.track_seed}, {where}",
         collisions=tracker.tick,
-        pilot=pilot,
+        follows_mode=[x for x in (pilot, tracker) if x is not None],
         finish=lambda summary: _finish(args, world, tracker, summary),
     )
 
 
 def _finish(args: argparse.Namespace, world: Any, tracker: Tracker, summary: Any) -> None:
-    """Print the paper's simulation metrics for this run; plot and save them when asked."""
+    """Print the paper's simulation metrics for this run; save them with a plot under --out."""
     from carrt.sim import metrics
+    from carrt.sim.runs import save_run
 
+    del summary
     result = metrics.run_metrics(world.track, tracker)
     print(metrics.format_metrics(result))
-    out = Path(args.out) if getattr(args, "out", None) else None
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
+    label = f"{args.layout}-s{args.track_seed}"
+    if getattr(args, "out", None):
+        out = Path(args.out)
+        path = save_run(out, world.track, tracker, result, label)
         (out / "sim_metrics.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
+        print(f"run saved: {path} (and its .png trajectory plot)")
     if args.plot:
         metrics.plot_trajectory(
-            world.track,
-            tracker.x,
-            tracker.y,
-            tracker.collision,
-            args.plot,
-            title=f"{args.layout} seed {args.track_seed}",
-            speeds=tracker.speed,
-        )
+            world.track, tracker.x, tracker.y, tracker.collision, args.plot,
+            title=label, speeds=tracker.speed,
+        )  # fmt: skip
         print(f"trajectory plot: {args.plot}")

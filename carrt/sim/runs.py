@@ -1,0 +1,78 @@
+"""Simulated runs on disk, and the paper's simulation table over them (`carrt report`).
+
+A run's trajectory (time, position, speed, progress, collisions, laps, resets) is saved next
+to its episodes as `sim-runs/<name>.npz` with its metrics and a top-down plot, so the paper's
+table can be rebuilt later from any set of runs, like the real-car table from episodes.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from carrt.sim import metrics
+from carrt.sim.track import build_track
+
+COLUMNS = ("t", "x", "y", "speed", "progress", "collision", "lap", "resetting")
+
+
+def save_run(out_dir: Path, track: Any, trajectory: Any, result: Any, label: str) -> Path:
+    """Write <out>/sim-runs/<stamp>-<label>.{npz,json,png}; return the npz path."""
+    runs = Path(out_dir) / "sim-runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    stem = runs / f"{time.strftime('%Y%m%d-%H%M%S')}-{label}"
+    n = 0
+    while stem.with_suffix(".npz").exists():
+        n += 1
+        stem = runs / f"{time.strftime('%Y%m%d-%H%M%S')}-{label}-{n}"
+    arrays = {c: np.asarray(getattr(trajectory, c)) for c in COLUMNS}
+    np.savez(stem.with_suffix(".npz"), layout=track.name, track_seed=track.seed, **arrays)
+    stem.with_suffix(".json").write_text(json.dumps(asdict(result), indent=2) + "\n")
+    metrics.plot_trajectory(
+        track, arrays["x"], arrays["y"], arrays["collision"], stem.with_suffix(".png"),
+        title=f"{label}: completion {result.completion_ratio:.0%}", speeds=arrays["speed"],
+    )  # fmt: skip
+    return stem.with_suffix(".npz")
+
+
+def find_runs(paths: list[str]) -> list[Path]:
+    found: list[Path] = []
+    for raw in paths:
+        path = Path(raw)
+        if path.suffix == ".npz" and path.is_file():
+            found.append(path)
+        elif path.is_dir():
+            found.extend(sorted(path.glob("sim-runs/*.npz")) + sorted(path.glob("*.npz")))
+    return found
+
+
+def load_metrics(path: Path) -> tuple[str, Any]:
+    with np.load(path) as data:
+        track = build_track(str(data["layout"]), int(data["track_seed"]))
+        cols = {c: data[c] for c in COLUMNS}
+    result = metrics.compute_metrics(
+        cols["t"], cols["x"], cols["y"], cols["speed"], cols["progress"], cols["collision"],
+        cols["lap"], track.length, resetting=cols["resetting"],
+    )  # fmt: skip
+    return path.stem, result
+
+
+def render_sim_table(rows: list[tuple[str, Any]]) -> str:
+    """The paper's simulation table, plus its real-car columns for auto-reset runs."""
+    lines = [
+        f"{'run':<34} {'avg m/s':>7} {'top m/s':>7} {'completion':>10} {'best lap s':>10} "
+        f"{'laps':>4} {'collisions':>10} {'5 laps s':>8}",
+    ]
+    for name, m in rows:
+        best = f"{m.best_lap:.2f}" if m.best_lap is not None else "-"
+        five = f"{m.time_for_laps:.1f}" if m.time_for_laps is not None else "-"
+        lines.append(
+            f"{name[:34]:<34} {m.average_speed:7.2f} {m.top_speed:7.2f} "
+            f"{m.completion_ratio:10.1%} {best:>10} {m.laps:4d} {m.collisions:10d} {five:>8}"
+        )
+    return "\n".join(lines)

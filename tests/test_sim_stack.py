@@ -1,0 +1,123 @@
+"""The simulator through the real commands: the full stack over the pty in real time, and the
+same loop on the simulated clock (expert recording, autopilot with auto-reset)."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+from e2e_rig import CliRun, wait_for
+from onnx_models import build_policy
+
+from carrt.episodes.reader import list_episodes, read_episode
+from carrt.interfaces import Mode
+
+
+def test_realtime_stack_drives_a_lap_through_the_pty_without_a_trip(tmp_path, capsys):
+    out = tmp_path / "run"
+    code = CliRun(
+        ["teleop", "--sim", "--expert", "auto", "--realtime", "--layout", "empty",
+         "--laps", "1", "--episodes", "1", "--out", str(out), "--duration", "60"]
+    ).result(timeout_s=90)  # fmt: skip
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "virtual board on" in text, "real time goes through the pty"
+    assert "FAILSAFE" not in text and "failsafe" not in text, text
+    metrics = json.loads((out / "sim_metrics.json").read_text())
+    assert metrics["laps"] >= 1
+    assert metrics["collisions"] == 0
+    assert metrics["completion_ratio"] == 1.0
+
+
+def test_expert_recording_on_the_simulated_clock(tmp_path):
+    out = tmp_path / "expert"
+    start = time.monotonic()
+    code = CliRun(
+        ["teleop", "--sim", "--expert", "auto", "--record", "--layout", "easy",
+         "--episodes", "2", "--laps", "1", "--out", str(out), "--duration", "300"]
+    ).result(timeout_s=120)  # fmt: skip
+    wall = time.monotonic() - start
+    assert code == 0
+    episodes = [read_episode(p) for p in list_episodes(out)]
+    assert len(episodes) == 2
+    simulated = sum(ep.duration_s for ep in episodes)
+    assert simulated > 2 * wall, f"{simulated:.0f} s simulated in {wall:.0f} s of wall time"
+    for ep in episodes:
+        steps = ep.steps
+        assert ep.end_reason == "disarmed" and ep.collision.sum() == 0
+        assert (steps["mode"][:-1] == Mode.MANUAL).all()  # the last step is the disarm
+        assert steps["speed_mps"].max() > 1.5
+        noisy = steps["noise"].astype(bool)
+        assert 0.2 < noisy.mean() < 0.8, "noise on about half of the time"
+        manual = steps["mode"] == Mode.MANUAL
+        delta = steps["executed_action"] - steps["human_action"]
+        assert np.abs(delta[manual & ~noisy]).max() < 1e-6
+        assert np.abs(delta[manual & noisy]).max() <= 0.3 + 1e-6
+        assert ep.meta["sim"]["layout"] == "easy"
+        assert steps["lap"].sum() == 1, "the pilot marks the lap at the line"
+        # the camera saw the track: not a blank image
+        assert ep.frames[len(ep.frames) // 2].std() > 5
+
+
+def test_autopilot_resets_after_collisions_and_labels_them(tmp_path, capsys):
+    # A policy that always steers hard right at full throttle: it will hit the fence.
+    model = build_policy(tmp_path / "crash.onnx", steering=0.0, throttle=(1.0, 0.0))
+    out = tmp_path / "auto"
+    code = CliRun(
+        ["drive", "--sim", "--autopilot", "--model", str(model), "--record", "--layout", "easy",
+         "--episodes", "2", "--out", str(out), "--duration", "120",
+         "--plot", str(tmp_path / "traj.png")]
+    ).result(timeout_s=120)  # fmt: skip
+    assert code == 0
+    episodes = [read_episode(p) for p in list_episodes(out)]
+    assert len(episodes) == 2
+    for ep in episodes:
+        assert ep.end_reason == "collision"
+        assert ep.steps["collision"][-1]
+        assert ep.collision[-1] == 1 and ep.collision[0] == 0
+        assert (ep.steps["mode"][5:-1] == Mode.AUTO).all()
+    metrics = json.loads((out / "sim_metrics.json").read_text())
+    assert metrics["collisions"] == 2
+    assert 0.0 <= metrics["completion_ratio"] < 1.0
+    assert (tmp_path / "traj.png").stat().st_size > 1000
+    assert "completion" in capsys.readouterr().out
+    (run_png,) = (out / "sim-runs").glob("*.png")
+    assert run_png.stat().st_size > 1000, "every saved run has its trajectory plot"
+
+    from carrt.cli import main
+
+    assert main(["report", str(out)]) == 0
+    report = capsys.readouterr().out
+    assert "simulation" in report and "completion" in report
+    row = next(line for line in report.splitlines() if line.startswith(run_png.stem[:20]))
+    assert row.split()[-2] == "2", "two collisions in the simulation table"
+    assert "interv" in report and "e-stop" in report, "and the real-car table from the episodes"
+
+
+def test_keyboard_window_drives_the_simulator(tmp_path):
+    import pygame
+
+    out = tmp_path / "keys"
+    run = CliRun(
+        ["teleop", "--sim", "--layout", "empty", "--duration", "6", "--record", "--out", str(out),
+         "--set", "noise.fraction=0.0"]
+    )  # fmt: skip
+    wait_for(lambda: pygame.display.get_init() and pygame.display.get_surface() is not None, 10)
+    time.sleep(0.3)
+
+    def key(kind, k):
+        pygame.event.post(pygame.event.Event(kind, key=k, mod=0, unicode="", scancode=0))
+
+    key(pygame.KEYDOWN, pygame.K_RETURN)  # arm
+    time.sleep(0.5)
+    key(pygame.KEYDOWN, pygame.K_UP)  # accelerate
+    time.sleep(1.5)
+    key(pygame.KEYUP, pygame.K_UP)
+    key(pygame.KEYDOWN, pygame.K_SPACE)  # e-stop
+    assert run.result(timeout_s=30) == 0
+    (path,) = list_episodes(out)
+    ep = read_episode(path)
+    assert ep.end_reason == "estop"
+    assert ep.steps["human_action"][:, 1].max() > 0.9, "the held key ramps the throttle up"
+    assert ep.steps["speed_mps"].max() > 0.5, "and the simulated car moved"
