@@ -291,7 +291,10 @@ class ControlLoop:
             self._record_paused = not self._record_paused
         driving = decision.mode in (Mode.MANUAL, Mode.AUTO)
         want = self.record and not self._record_paused and (driving or self._recording)
-        if want and not self._recording and driving and image is not None:
+        # An episode starts when the board confirms it is armed, not when the host asks: a
+        # refused arm must not leave a few-step episode of a car that never moved.
+        board_armed = self.parts.link.board_state == m.State.ARMED
+        if want and not self._recording and driving and board_armed and image is not None:
             sink.begin({**self.episode_metadata, "started_mode": decision.mode.name})
             self._recording = True
             self.summary.episodes += 1

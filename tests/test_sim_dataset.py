@@ -1,0 +1,13 @@
+"""The shared simulator dataset fixture itself: what the training tests rely on."""
+
+from carrt.episodes.reader import list_episodes, read_episode
+
+
+def test_sim_dataset_has_clean_laps_and_collisions(sim_episodes):
+    episodes = [read_episode(p) for p in list_episodes(sim_episodes)]
+    assert len(episodes) == 6
+    reasons = sorted(ep.end_reason for ep in episodes)
+    assert reasons == ["collision"] * 3 + ["disarmed"] * 3
+    assert sum(ep.n for ep in episodes) > 150
+    crashed = [ep for ep in episodes if ep.end_reason == "collision"]
+    assert all(ep.collision[-5:].all() and not ep.collision[0] for ep in crashed)
