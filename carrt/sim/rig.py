@@ -19,25 +19,19 @@ from typing import Any
 from carrt.clock import SimClock, WallClock
 from carrt.interfaces import Mode
 from carrt.sim.camera import SimCamera
+from carrt.sim.metrics import TrajectoryRecorder
 from carrt.sim.pilot import SimPilot
 from carrt.sim.plant import SimPlant
+from carrt.sim.world import StepInfo
 from firmware_bridge.link import BoardLink
 
 
 @dataclass
 class Tracker:
-    """Samples the car once per control tick: the paper's metrics are computed from this."""
+    """Samples the car once per control tick into the metrics' TrajectoryRecorder."""
 
     plant: SimPlant
-    clock: Any
-    t: list[float] = field(default_factory=list)
-    x: list[float] = field(default_factory=list)
-    y: list[float] = field(default_factory=list)
-    speed: list[float] = field(default_factory=list)
-    progress: list[float] = field(default_factory=list)
-    collision: list[bool] = field(default_factory=list)
-    lap: list[bool] = field(default_factory=list)
-    resetting: list[bool] = field(default_factory=list)
+    recorder: TrajectoryRecorder = field(default_factory=TrajectoryRecorder)
     mode_source: Any = None  # the loop's mode: time stopped after a crash is reset time
     _laps: int = 0
     _armed_once: bool = False
@@ -45,21 +39,15 @@ class Tracker:
     def tick(self) -> bool:
         """Record this tick; report (once) whether the car collided since the last tick."""
         collided = self.plant.take_collision()
-        with self.plant.lock:
-            world = self.plant.world
-            state = world.car
-            self.t.append(self.clock.now())
-            self.x.append(state.x)
-            self.y.append(state.y)
-            self.speed.append(state.v)
-            self.progress.append(world.progress)
-            self.collision.append(collided)
-            self.lap.append(world.laps > self._laps)
-            self._laps = world.laps
         mode = self.mode_source() if self.mode_source is not None else Mode.MANUAL
         driving = mode in (Mode.MANUAL, Mode.AUTO)
         self._armed_once = self._armed_once or driving
-        self.resetting.append(self._armed_once and not driving)
+        with self.plant.lock:
+            world = self.plant.world
+            lap = world.laps > self._laps
+            self._laps = world.laps
+            info = StepInfo(collision=collided, collided_with="", lap_completed=lap)
+            self.recorder.record(world, info, resetting=self._armed_once and not driving)
         return collided
 
 
@@ -120,7 +108,7 @@ def open_sim_rig(
             renderer_map=lambda p: top_down(world.track, poses=[p.pose()]),
             max_throttle=config.joystick.max_throttle,
         )
-    tracker = Tracker(plant, clock)
+    tracker = Tracker(plant)
     return Rig(
         clock=clock,
         camera=camera,
@@ -139,17 +127,17 @@ def _finish(args: argparse.Namespace, world: Any, tracker: Tracker, summary: Any
     from carrt.sim.runs import save_run
 
     del summary
-    result = metrics.run_metrics(world.track, tracker)
+    result = metrics.run_metrics(world.track, tracker.recorder)
     print(metrics.format_metrics(result))
     label = f"{args.layout}-s{args.track_seed}"
     if getattr(args, "out", None):
         out = Path(args.out)
-        path = save_run(out, world.track, tracker, result, label)
+        path = save_run(out, world.track, tracker.recorder, result, label)
         (out / "sim_metrics.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
         print(f"run saved: {path} (and its .png trajectory plot)")
     if args.plot:
+        a = tracker.recorder.arrays()
         metrics.plot_trajectory(
-            world.track, tracker.x, tracker.y, tracker.collision, args.plot,
-            title=label, speeds=tracker.speed,
-        )  # fmt: skip
+            world.track, a["x"], a["y"], a["collision"], args.plot, title=label, speeds=a["speed"]
+        )
         print(f"trajectory plot: {args.plot}")

@@ -18,10 +18,10 @@ import numpy as np
 from carrt.sim import metrics
 from carrt.sim.track import build_track
 
-COLUMNS = ("t", "x", "y", "speed", "progress", "collision", "lap", "resetting")
 
-
-def save_run(out_dir: Path, track: Any, trajectory: Any, result: Any, label: str) -> Path:
+def save_run(
+    out_dir: Path, track: Any, recorder: metrics.TrajectoryRecorder, result: Any, label: str
+) -> Path:
     """Write <out>/sim-runs/<stamp>-<label>.{npz,json,png}; return the npz path."""
     runs = Path(out_dir) / "sim-runs"
     runs.mkdir(parents=True, exist_ok=True)
@@ -30,7 +30,7 @@ def save_run(out_dir: Path, track: Any, trajectory: Any, result: Any, label: str
     while stem.with_suffix(".npz").exists():
         n += 1
         stem = runs / f"{time.strftime('%Y%m%d-%H%M%S')}-{label}-{n}"
-    arrays = {c: np.asarray(getattr(trajectory, c)) for c in COLUMNS}
+    arrays = recorder.arrays()
     np.savez(stem.with_suffix(".npz"), layout=track.name, track_seed=track.seed, **arrays)
     stem.with_suffix(".json").write_text(json.dumps(asdict(result), indent=2) + "\n")
     metrics.plot_trajectory(
@@ -54,12 +54,10 @@ def find_runs(paths: list[str]) -> list[Path]:
 def load_metrics(path: Path) -> tuple[str, Any]:
     with np.load(path) as data:
         track = build_track(str(data["layout"]), int(data["track_seed"]))
-        cols = {c: data[c] for c in COLUMNS}
-    result = metrics.compute_metrics(
-        cols["t"], cols["x"], cols["y"], cols["speed"], cols["progress"], cols["collision"],
-        cols["lap"], track.length, resetting=cols["resetting"],
-    )  # fmt: skip
-    return path.stem, result
+        recorder = metrics.TrajectoryRecorder(
+            **{name: list(data[name]) for name in metrics.TrajectoryRecorder.__dataclass_fields__}
+        )
+    return path.stem, recorder.metrics(track.length)
 
 
 def render_sim_table(rows: list[tuple[str, Any]]) -> str:
