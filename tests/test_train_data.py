@@ -1,0 +1,157 @@
+"""Windows, splits, digest and normalisation over episodes recorded by the real stack."""
+
+import json
+import pickle
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from training.data import (
+    Normalisation,
+    WindowDataset,
+    compute_normalisation,
+    data_digest,
+    load_episodes,
+    split_by_episode,
+)
+
+H = 10
+
+
+@pytest.fixture(scope="module")
+def episodes(sim_episodes):
+    eps = load_episodes(sim_episodes)
+    assert len(eps) == 6
+    assert any(ep.collision.any() for ep in eps), "the fixture should hold collisions"
+    return eps
+
+
+@pytest.fixture(scope="module")
+def windows(episodes):
+    return WindowDataset(episodes, H, predict_size=16)
+
+
+def locate(ds, i, t):
+    rows = np.flatnonzero((ds.index[:, 0] == i) & (ds.index[:, 1] == t))
+    assert len(rows) == 1
+    return ds[int(rows[0])]
+
+
+def test_one_window_per_step_with_a_future(episodes, windows):
+    assert len(windows) == sum(ep.n - 1 for ep in episodes)
+    item = windows[0]
+    expected = {
+        "image": ((96, 96, 3), torch.uint8),
+        "speed": ((1,), torch.float32),
+        "expert_actions": ((H, 2), torch.float32),
+        "actions": ((H, 2), torch.float32),
+        "future_images": ((H, 16, 16, 3), torch.uint8),
+        "future_speeds": ((H, 1), torch.float32),
+        "collisions": ((H,), torch.float32),
+        "mask": ((H,), torch.float32),
+        "action_mask": ((H,), torch.float32),
+    }
+    for key, (shape, dtype) in expected.items():
+        assert item[key].shape == shape and item[key].dtype == dtype, key
+
+
+def test_window_contents_match_the_episode(episodes):
+    ds = WindowDataset(episodes, H, predict_size=96)
+    small = WindowDataset(episodes, H, predict_size=16)
+    for i, ep in enumerate(episodes):
+        last_full = ep.n - 1 - H  # the last start with a whole future
+        for t in sorted({0, last_full // 2, last_full}):
+            item = locate(ds, i, t)
+            steps = ep.steps
+            assert np.array_equal(item["image"].numpy(), ep.frames[t])
+            assert item["speed"].item() == pytest.approx(float(steps["speed_mps"][t]))
+            assert np.allclose(item["expert_actions"].numpy(), steps["human_action"][t : t + H])
+            assert np.allclose(item["actions"].numpy(), steps["executed_action"][t : t + H])
+            future = slice(t + 1, t + 1 + H)
+            assert np.array_equal(item["future_images"].numpy(), ep.frames[future])
+            assert np.allclose(item["future_speeds"].numpy()[:, 0], steps["speed_mps"][future])
+            assert np.array_equal(item["collisions"].numpy(), ep.collision[future])
+            assert item["mask"].sum().item() == H
+            # 16 × 16: the area mean of 6 × 6 blocks
+            blocks = ep.frames[future].reshape(H, 16, 6, 16, 6, 3).astype(np.float64).mean((2, 4))
+            got = locate(small, i, t)["future_images"].numpy().astype(np.float64)
+            assert np.abs(got - blocks).max() <= 1.0
+
+
+def test_masks_and_padding_at_an_episode_end(episodes, windows):
+    i, ep = next((i, ep) for i, ep in enumerate(episodes) if ep.collision.any())
+    last = locate(windows, i, ep.n - 2)  # one future step left
+    assert last["mask"].tolist() == [1.0] + [0.0] * (H - 1)
+    assert last["action_mask"].tolist() == [1.0, 1.0] + [0.0] * (H - 2)
+    assert last["collisions"][0].item() == ep.collision[-1] == 1  # ended by a collision
+    assert np.allclose(last["actions"][1:].numpy(), ep.steps["executed_action"][-1])
+    assert np.allclose(last["future_speeds"][:, 0].numpy(), ep.steps["speed_mps"][-1])
+    three = locate(windows, i, ep.n - 4)
+    assert three["mask"].tolist() == [1.0] * 3 + [0.0] * (H - 3)
+    assert not any(t == ep.n - 1 for j, t in windows.index if j == i)  # nothing to predict
+
+
+def test_collision_free_windows_touch_no_collision_label(episodes, windows):
+    free = WindowDataset(episodes, H, predict_size=16, collision_free_only=True)
+    assert 0 < len(free) < len(windows)
+    expected = 0
+    for ep in episodes:
+        for t in range(ep.n - 1):
+            expected += not ep.collision[t : t + H + 1].any()
+    assert len(free) == expected
+    for i, t in free.index:
+        assert not episodes[i].collision[t : t + H + 1].any()
+    for k in range(0, len(free), 7):
+        assert free[k]["collisions"].sum().item() == 0
+
+
+def test_split_is_by_episode_and_seeded(episodes):
+    train, val = split_by_episode(episodes, 0.34, seed=3)
+    names_t, names_v = {e.name for e in train}, {e.name for e in val}
+    assert len(val) == 2 and len(train) == 4
+    assert not names_t & names_v and names_t | names_v == {e.name for e in episodes}
+    again = split_by_episode(list(reversed(episodes)), 0.34, seed=3)
+    assert {e.name for e in again[1]} == names_v  # the input order does not matter
+    splits = {frozenset(e.name for e in split_by_episode(episodes, 0.34, s)[1]) for s in range(8)}
+    assert len(splits) > 1  # the seed does
+    assert split_by_episode(episodes, 0.01, 0)[1]  # a tiny fraction still validates on one
+    assert split_by_episode(episodes, 0.0, 0)[1] == []
+
+
+def test_normalisation_is_sane_and_round_trips(episodes):
+    norm = compute_normalisation(episodes)
+    assert all(0.0 < m < 1.0 for m in norm.image_mean)
+    assert all(0.0 < s < 0.5 for s in norm.image_std)
+    assert 0.0 < norm.speed_mean < 3.0 and norm.speed_std >= 0.1
+    d = json.loads(json.dumps(norm.to_dict()))
+    assert Normalisation.from_dict(d) == norm
+    few = compute_normalisation(episodes, max_frames=16)
+    assert few.image_mean == pytest.approx(norm.image_mean, abs=0.05)
+
+
+def test_digest_is_stable_and_names_the_episode_set(episodes):
+    d = data_digest(episodes)
+    assert len(d) == 64 and int(d, 16) >= 0
+    assert data_digest(list(reversed(episodes))) == d
+    assert data_digest(episodes[:-1]) != d
+    assert data_digest(episodes[1:]) != data_digest(episodes[:-1])
+
+
+def test_dataloader_iterates(windows):
+    loader = DataLoader(windows, batch_size=8, shuffle=True, num_workers=0)
+    for k, b in enumerate(loader):
+        assert b["image"].shape == (8, 96, 96, 3) and b["image"].dtype == torch.uint8
+        assert b["future_images"].shape == (8, H, 16, 16, 3)
+        if k == 2:
+            break
+
+
+def test_pickled_dataset_reopens_frames_instead_of_copying_them(windows):
+    blob = pickle.dumps(windows)
+    assert len(blob) < 200_000  # ~300 frames would be 8 MB
+    clone = pickle.loads(blob)
+    for k in (0, len(windows) - 1):
+        for key, value in windows[k].items():
+            assert torch.equal(clone[k][key], value), key

@@ -1,0 +1,220 @@
+"""training/iterate.py end to end on the simulator's episodes (tiny profile, a handful of steps).
+
+One iteration writes the policy, the world model, checkpoints, report.md with held-out metrics,
+figures and an ONNX policy carrt loads; the next iteration starts from it; an interrupted run
+resumes exactly where it stopped; torchrun with two gloo processes trains the same way; bad
+input is one line and exit status 2.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from training import checkpoint as ck  # noqa: E402
+from training.iterate import main  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = [
+    "--profile", "tiny", "--set", "threads=1", "--set", "progress=false",
+    "--set", "imitation_batch_size=8", "--set", "world_model_batch_size=4",
+    "--set", "refine_batch_size=4", "--set", "eval_windows=64",
+]  # fmt: skip
+
+
+@pytest.fixture(autouse=True)
+def restore_threads():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+def steps(imitation: int, world_model: int, refine: int) -> list[str]:
+    return ["--set", f"imitation_steps={imitation}", "--set", f"world_model_steps={world_model}",
+            "--set", f"refine_steps={refine}"]  # fmt: skip
+
+
+QUICK = [*SMALL, "--set", "export=false", "--set", "figures=false", "--set", "ckpt_every=2"]
+
+
+@pytest.fixture(scope="module")
+def iteration1(sim_episodes, tmp_path_factory):
+    out = tmp_path_factory.mktemp("runs") / "iter1"
+    before = torch.get_num_threads()
+    rc = main(["--episodes", str(sim_episodes), "--out", str(out), *SMALL, *steps(6, 6, 4)])
+    torch.set_num_threads(before)
+    return rc, out
+
+
+def test_iteration_writes_policy_report_figures_and_onnx(iteration1, sim_episodes):
+    rc, out = iteration1
+    assert rc == 0
+    for name in ("policy.pt", "world_model.pt", "report.md", "metrics.json", "policy.onnx"):
+        assert (out / name).is_file(), name
+    assert {p.name for p in (out / "checkpoints").iterdir()} == {
+        "imitation.pt",
+        "world_model.pt",
+        "refine.pt",
+    }
+    assert any((out / "tensorboard").iterdir())
+
+    policy, saved = ck.load_policy(out / "policy.pt")
+    assert saved["stage"] == "refine" and saved["step"] == 4 and saved["iteration"] == 1
+    assert saved["optimizer"] is None and saved["world_model"] is None
+    assert ck.load_checkpoint(out / "world_model.pt")["world_model"] is not None
+
+    report = (out / "report.md").read_text()
+    for needle in ("speed MAE", "constant speed", "collision AUROC", "imitation L1",
+                   "training data digest", "held out"):  # fmt: skip
+        assert needle in report, needle
+    for png in ("loss_curves.png", "uncertainty_vs_error.png", "reveries.png"):
+        assert (out / "figures" / png).stat().st_size > 10_000
+        assert f"](figures/{png})" in report  # relative links
+    record = json.loads((out / "metrics.json").read_text())
+    m = record["metrics"]
+    assert m["held_out"] and m["windows"] > 0
+    assert np.isfinite(m["speed_mae_mps"]) and np.isfinite(m["baseline_speed_mae_mps"])
+    assert np.isfinite(m["imitation_l1"])
+    if m["collision_steps"] > 0:  # which episodes are held out depends on their names
+        assert 0.0 <= m["collision_auroc"] <= 1.0
+    else:
+        assert m["collision_auroc"] is None  # NaN is written as null
+    assert record["stages"]["imitation"]["steps"] == 6
+    assert record["data"]["episodes"] == 6
+
+    from carrt.policy import OnnxPolicy
+
+    onnx_policy = OnnxPolicy(out / "policy.onnx")
+    assert onnx_policy.horizon == 10
+    assert onnx_policy.metadata["carrt.iteration"] == "1"
+    assert onnx_policy.metadata["carrt.training_data_digest"] == saved["data_digest"]
+    from carrt.episodes.reader import list_episodes, read_episode
+
+    ep = read_episode(list_episodes(sim_episodes)[0])
+    frame, speed = np.array(ep.frames[3]), float(ep.steps["speed_mps"][3])
+    with torch.no_grad():
+        mu, _ = policy(torch.from_numpy(frame)[None], torch.tensor([[speed]]))
+    assert np.allclose(onnx_policy.predict(frame, speed).mu, mu[0].numpy(), atol=1e-4)
+
+
+def test_next_iteration_starts_from_the_previous_one(iteration1, sim_episodes, tmp_path):
+    _, prev = iteration1
+    out = tmp_path / "iter2"
+    argv = ["--episodes", str(sim_episodes), "--out", str(out), "--init", str(prev)]
+    assert main([*argv, *QUICK, *steps(6, 2, 2)]) == 0
+    assert not (out / "checkpoints" / "imitation.pt").exists()  # imitation runs once
+    saved = ck.load_checkpoint(out / "policy.pt")
+    assert saved["iteration"] == 2 and saved["profile"] == "tiny"  # profile taken from --init
+    first = ck.load_checkpoint(prev / "policy.pt")
+    assert saved["normalisation"] == first["normalisation"]
+    wm = ck.load_checkpoint(out / "checkpoints" / "world_model.pt")
+    assert [h["step"] for h in wm["history"]] == [1, 2]
+    assert "iteration 2" in (out / "report.md").read_text()
+
+
+def test_an_interrupted_run_resumes_where_it_stopped(sim_episodes, tmp_path, capsys):
+    argv = ["--episodes", str(sim_episodes), *QUICK, *steps(4, 4, 4)]
+    straight = tmp_path / "straight"
+    assert main([*argv, "--out", str(straight)]) == 0
+
+    out = tmp_path / "interrupted"
+    capsys.readouterr()
+    assert main([*argv, "--out", str(out), "--set", "stop_after=5"]) == 0
+    assert "run the same command to resume" in capsys.readouterr().out
+    assert not (out / "policy.pt").exists()
+    assert ck.load_checkpoint(out / "checkpoints" / "imitation.pt")["step"] == 4
+    assert ck.load_checkpoint(out / "checkpoints" / "world_model.pt")["step"] == 1
+    imitation_bytes = (out / "checkpoints" / "imitation.pt").read_bytes()
+
+    assert main([*argv, "--out", str(out)]) == 0
+    assert (out / "checkpoints" / "imitation.pt").read_bytes() == imitation_bytes  # not redone
+    wm = ck.load_checkpoint(out / "checkpoints" / "world_model.pt")
+    assert wm["step"] == 4 and [h["step"] for h in wm["history"]] == [1, 2, 3, 4]
+    resumed = ck.load_checkpoint(out / "policy.pt")
+    reference = ck.load_checkpoint(straight / "policy.pt")
+    assert resumed["step"] == 4
+    for k, v in reference["policy"].items():  # bit-identical to the run that never stopped
+        assert torch.equal(v, resumed["policy"][k]), k
+
+
+def test_two_processes_with_gloo(sim_episodes, tmp_path):
+    out = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "training/iterate.py", "--episodes", str(sim_episodes), "--out", str(out),
+           *QUICK, *steps(3, 3, 2)]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    record = json.loads((out / "metrics.json").read_text())
+    assert record["world_size"] == 2
+    assert ck.load_checkpoint(out / "policy.pt")["step"] == 2
+    assert len(list((out / "tensorboard").iterdir())) == 1  # only rank 0 writes
+    assert proc.stdout.count("wrote ") == 1
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--out", "{tmp}/o", "--episodes", "{tmp}/missing"], "no such directory"),
+        (["--out", "{tmp}/o", "--episodes", "{tmp}"], "no episodes"),
+        (["--out", "{tmp}/o", "--episodes", "{sim}", "--profile", "huge"], "unknown profile"),
+        (["--out", "{tmp}/o", "--episodes", "{sim}", "--set", "nosuch=1"], "unknown field"),
+        (["--out", "{tmp}/o", "--episodes", "{sim}", "--set", "seed=abc"], "not a valid int"),
+        (["--out", "{tmp}/o", "--episodes", "{sim}", "--set", "refine_lr=0"], "refine_lr"),
+        (["--out", "{tmp}/o", "--episodes", "{sim}", "--set", "novalue"], "field=value"),
+        (["--episodes", "{sim}"], "--out"),
+        (["--out", "{tmp}/o", "--episodes", "{sim}", "--device", "gpu"], "not a device"),
+        (["--out", "{tmp}/o", "--episodes", "{sim}", "--init", "{tmp}/nothing"], "--init"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(args, message, sim_episodes, tmp_path, capsys):
+    argv = [a.format(tmp=tmp_path, sim=sim_episodes) for a in args]
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], captured.err
+    assert captured.out == ""
+
+
+def test_resuming_into_a_run_of_another_profile_is_refused(iteration1, sim_episodes, capsys):
+    _, out = iteration1
+    assert main(["--episodes", str(sim_episodes), "--out", str(out), "--profile", "cpu"]) == 2
+    assert "holds a run with profile tiny" in capsys.readouterr().err
+
+
+def test_resume_ignores_checkpoints_stale_behind_an_unfinished_stage(tmp_path):
+    common = {"config": {}, "policy": {}, "world_model": None, "optimizer": None,
+              "normalisation": {}, "iteration": 1, "code_version": "x", "episodes": []}  # fmt: skip
+    for stage in ("imitation", "world_model", "refine"):
+        ck.save_checkpoint(tmp_path / f"{stage}.pt", **common, profile="tiny", data_digest="d",
+                           stage=stage, step=4)  # fmt: skip
+
+    def plan(imitation, world_model=4, refine=4, digest="d"):
+        targets = {"imitation": imitation, "world_model": world_model, "refine": refine}
+        return list(ck.resumable(tmp_path, targets, profile="tiny", digest=digest))
+
+    assert plan(4) == ["imitation", "world_model", "refine"]
+    assert plan(8) == ["imitation"]  # imitation raised to 8: the later stages are stale
+    (tmp_path / "imitation.pt").unlink()
+    assert plan(0) == ["world_model", "refine"]  # a skipped stage leaves no checkpoint
+    assert plan(4) == []
+    with pytest.raises(ck.CheckpointError, match="other episodes"):
+        plan(0, digest="other")
+
+
+def test_script_mode_reports_bad_input_in_one_line(tmp_path):
+    cmd = [sys.executable, "training/iterate.py", "--episodes", str(tmp_path), "--out",
+           str(tmp_path / "o"), "--profile", "nope"]  # fmt: skip
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        "iterate.py: error: unknown profile 'nope'; choose one of tiny, cpu, paper"
+    ]

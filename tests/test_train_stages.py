@@ -1,0 +1,287 @@
+"""The three DIRL stages on the simulator's episodes (tiny profile, a few dozen steps each).
+
+Each stage must make its loss fall; imitation must learn a* (never the executed a) on
+collision-free windows only; refinement must leave the world model bit-identical (parameters
+AND BatchNorm statistics) while the policy moves; an interrupted stage must resume exactly.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import signal
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from training import checkpoint as ck  # noqa: E402
+from training.data import WindowDataset, compute_normalisation, load_episodes  # noqa: E402
+from training.evaluate import auroc, spearman  # noqa: E402
+from training.imitation import imitation_loss, train_imitation  # noqa: E402
+from training.imitation import spec_for as imitation_spec  # noqa: E402
+from training.iterate import PRESETS, IterateConfig  # noqa: E402
+from training.models import PolicyNet, WorldModel  # noqa: E402
+from training.refine import held_out_objective, imagine, train_refine  # noqa: E402
+from training.trainer import (  # noqa: E402
+    Budget,
+    Interrupted,
+    RunContext,
+    StopRequested,
+    param_digest,
+    run_stage,
+)
+from training.world_training import Targets, train_world_model  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Two cores shared with other tests: one intra-op thread is several times faster here."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def data(sim_episodes):
+    episodes = load_episodes([sim_episodes])
+    norm = compute_normalisation(episodes)
+    windows = WindowDataset(episodes, 10, predict_size=16)
+    free = WindowDataset(episodes, 10, predict_size=16, collision_free_only=True)
+    return episodes, norm, windows, free
+
+
+def tiny(**overrides) -> IterateConfig:
+    cfg = dataclasses.replace(IterateConfig(profile="tiny"), **PRESETS["tiny"], progress=False)
+    return dataclasses.replace(cfg, **overrides)
+
+
+def models(norm, seed=0):
+    torch.manual_seed(seed)
+    profile = tiny().profile_obj
+    policy, world_model = PolicyNet(profile), WorldModel(profile)
+    policy.set_normalisation(norm)
+    world_model.set_normalisation(norm)
+    return policy, world_model
+
+
+def first_last(history, key="loss", n=5):
+    values = [h[key] for h in history]
+    return float(np.mean(values[:n])), float(np.mean(values[-n:]))
+
+
+def test_imitation_loss_falls(data):
+    _, norm, _, free = data
+    policy, _ = models(norm)
+    cfg = tiny(imitation_steps=40, imitation_batch_size=8, imitation_lr=3e-3)
+    result = train_imitation(cfg, policy, free)
+    assert result.steps == 40 and len(result.history) == 40
+    first, last = first_last(result.history)
+    assert last < 0.9 * first, (first, last)
+
+
+class _Relabelled(torch.utils.data.Dataset):
+    """Real windows whose a* and executed a are set far apart, to see which one is learned."""
+
+    def __init__(self, base, n=48):
+        self.base, self.n = base, min(n, len(base))
+
+    def __len__(self):
+        return self.n
+
+    def __getitem__(self, i):
+        item = dict(self.base[i])
+        item["expert_actions"] = torch.tensor([0.6, 0.9]).expand(10, 2).clone()
+        item["actions"] = torch.tensor([-0.6, 0.1]).expand(10, 2).clone()
+        return item
+
+
+def test_imitation_learns_expert_actions_not_executed_ones(data):
+    _, norm, _, free = data
+    policy, _ = models(norm)
+    cfg = tiny(imitation_steps=25, imitation_batch_size=8, imitation_lr=1e-2)
+    train_imitation(cfg, policy, _Relabelled(free))
+    batch = torch.utils.data.default_collate([free[i] for i in range(8)])
+    policy.eval()
+    with torch.no_grad():
+        mu, _ = policy(batch["image"], batch["speed"])
+    mean = mu.mean(dim=(0, 1))
+    to_expert = (mean - torch.tensor([0.6, 0.9])).abs().max()
+    to_executed = (mean - torch.tensor([-0.6, 0.1])).abs().max()
+    assert to_expert < 0.2 < to_executed, mean
+
+
+def test_imitation_loss_masks_steps_past_the_episode_end(data):
+    _, norm, _, free = data
+    policy, _ = models(norm)
+    batch = torch.utils.data.default_collate([free[i] for i in range(4)])
+    base, _ = imitation_loss(policy, batch)
+    batch["mask"][:, 5:] = 0
+    batch["expert_actions"][:, 5:] = 1e6  # would dominate if it were not masked
+    masked, _ = imitation_loss(policy, batch)
+    assert torch.isfinite(masked) and masked < 10 and masked != base
+
+
+@pytest.fixture(scope="module")
+def trained_world_model(data):
+    """A world model after 25 steps, and their history: refinement needs one that reacts to
+    its actions (an untrained one barely does, so the objective would hardly move)."""
+    _, norm, windows, _ = data
+    with torch.random.fork_rng():
+        torch.set_num_threads(1)
+        _, world_model = models(norm)
+        cfg = tiny(world_model_steps=25, world_model_batch_size=8, world_model_lr=2e-3)
+        result = train_world_model(cfg, world_model, windows, norm, collision_weight=5.0)
+    return world_model, result
+
+
+def test_world_model_loss_falls_on_all_its_parts(trained_world_model):
+    _, result = trained_world_model
+    assert result.steps == 25
+    for key in ("loss", "image", "speed", "collision"):
+        first, last = first_last(result.history, key)
+        assert last < 0.9 * first, (key, first, last)
+
+
+def test_refinement_improves_the_objective_and_leaves_the_world_model_untouched(
+    data, trained_world_model
+):
+    _, norm, windows, _ = data
+    policy, _ = models(norm)
+    world_model = copy.deepcopy(trained_world_model[0])
+    world_model.train()  # refinement itself must freeze it
+    frozen = param_digest(world_model)
+    policy_before = param_digest(policy)
+    cfg = tiny(refine_steps=20, refine_batch_size=8, refine_lr=3e-4)
+    targets = Targets(norm)
+    world_model.eval()
+    before = held_out_objective(cfg, policy, world_model, targets, windows, "cpu", limit=64)
+    world_model.train()
+    result = train_refine(cfg, policy, world_model, windows, norm)
+    after = held_out_objective(cfg, policy, world_model, targets, windows, "cpu", limit=64)
+    assert result.steps == 20
+    assert after["loss"] < before["loss"] - 0.1, (before, after)
+    first, last = first_last(result.history)
+    assert last < first, (first, last)
+    now = param_digest(world_model)
+    assert frozen.keys() == now.keys()
+    assert any("running_mean" in k for k in now)  # BatchNorm statistics are compared too
+    for k in frozen:
+        assert torch.equal(frozen[k], now[k]), k
+    assert not world_model.training
+    assert all(not p.requires_grad for p in world_model.parameters())
+    changed = [k for k, v in param_digest(policy).items() if not torch.equal(v, policy_before[k])]
+    assert any("head" in k for k in changed) and any("backbone" in k for k in changed)
+
+
+def test_refinement_gradient_reaches_the_actions_through_the_frozen_world_model(data):
+    _, norm, windows, _ = data
+    _, world_model = models(norm)
+    world_model.freeze()
+    batch = torch.utils.data.default_collate([windows[i] for i in range(4)])
+    actions = batch["actions"].clone().requires_grad_(True)
+    imagined = imagine(world_model, Targets(norm), batch["image"], batch["speed"], actions, 10.0)
+    sum(v.sum() for v in imagined.values()).backward()
+    assert actions.grad is not None and actions.grad.abs().sum() > 0
+    assert all(p.grad is None for p in world_model.parameters())
+
+
+def test_no_uncertainty_removes_the_uncertainty_term(data):
+    _, norm, windows, _ = data
+    policy, world_model = models(norm)
+    world_model.freeze()
+    targets = Targets(norm)
+    with_u = held_out_objective(tiny(), policy, world_model, targets, windows, "cpu", limit=16)
+    no_u = held_out_objective(
+        tiny(no_uncertainty=True), policy, world_model, targets, windows, "cpu", limit=16
+    )
+    u = with_u["u_image"] + with_u["u_speed"] + with_u["u_collision"]
+    assert no_u["loss"] == pytest.approx(with_u["loss"] - 10 * u, rel=1e-4)
+
+
+def test_an_interrupted_stage_resumes_exactly(data, tmp_path):
+    _, norm, _, free = data
+    cfg = tiny(imitation_steps=8, imitation_batch_size=4, ckpt_every=3)
+    straight, _ = models(norm)
+    train_imitation(cfg, straight, free)
+
+    common = {
+        "config": {}, "profile": "tiny", "normalisation": norm.to_dict(), "data_digest": "x",
+        "iteration": 0, "code_version": ck.code_version(), "episodes": [],
+    }  # fmt: skip
+    ctx = RunContext(ckpt_dir=tmp_path, common=common, budget=Budget(5))
+    interrupted, _ = models(norm)
+    with pytest.raises(StopRequested):
+        train_imitation(cfg, interrupted, free, ctx)
+    saved = ck.load_checkpoint(tmp_path / "imitation.pt")
+    assert saved["step"] == 5 and saved["optimizer"] is not None
+    resumed, _ = models(norm, seed=123)  # different init: everything must come from the file
+    resumed.load_state_dict(saved["policy"])
+    result = train_imitation(cfg, resumed, free, RunContext(ckpt_dir=tmp_path, common=common),
+                             resume=saved)  # fmt: skip
+    assert [h["step"] for h in result.history] == list(range(1, 9))
+    for (k, a), b in zip(straight.state_dict().items(), resumed.state_dict().values(), strict=True):
+        assert torch.equal(a, b), k
+    assert ck.load_checkpoint(tmp_path / "imitation.pt")["step"] == 8
+
+
+def test_ctrl_c_finishes_the_step_then_checkpoints(data, tmp_path):
+    _, norm, _, free = data
+    policy, _ = models(norm)
+    common = {
+        "config": {}, "profile": "tiny", "normalisation": norm.to_dict(), "data_digest": "x",
+        "iteration": 0, "code_version": "x", "episodes": [],
+    }  # fmt: skip
+
+    def loss_fn(model, batch, step):
+        if step == 2:
+            signal.raise_signal(signal.SIGINT)  # arrives mid-step
+        return imitation_loss(model, batch)
+
+    spec = imitation_spec(tiny(imitation_steps=10, imitation_batch_size=4, ckpt_every=0))
+    ctx = RunContext(ckpt_dir=tmp_path, common=common)
+    fields = lambda: {"policy": policy.state_dict(), "world_model": None}  # noqa: E731
+    with pytest.raises(Interrupted):
+        run_stage(spec, ctx, dataset=free, trainable=policy, forward=policy, loss_fn=loss_fn,
+                  checkpoint_fields=fields)  # fmt: skip
+    saved = ck.load_checkpoint(tmp_path / "imitation.pt")
+    assert saved["step"] == 3 and [h["step"] for h in saved["history"]] == [1, 2, 3]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler restored
+
+
+def test_checkpoint_round_trip_and_refusals(data, tmp_path):
+    _, norm, _, _ = data
+    policy, _ = models(norm)
+    fields = {
+        "config": {"a": 1}, "profile": "tiny", "stage": "imitation", "step": 3,
+        "policy": policy.state_dict(), "world_model": None, "optimizer": None,
+        "normalisation": norm.to_dict(), "data_digest": "d", "iteration": 0,
+        "code_version": ck.code_version(), "episodes": ["e1"],
+    }  # fmt: skip
+    path = tmp_path / "c.pt"
+    ck.save_checkpoint(path, **fields)
+    assert [p.name for p in tmp_path.iterdir()] == ["c.pt"]  # no temporary file left behind
+    loaded, c = ck.load_policy(path)
+    assert c["step"] == 3 and c["format"] == ck.FORMAT and not loaded.training
+    assert loaded.normalisation().speed_std == pytest.approx(norm.speed_std)
+    with pytest.raises(ck.CheckpointError, match="missing fields step"):
+        ck.save_checkpoint(path, **{k: v for k, v in fields.items() if k != "step"})
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ck.CheckpointError, match="unreadable"):
+        ck.load_checkpoint(tmp_path / "junk.pt")
+    with pytest.raises(ck.CheckpointError, match="holds no world model"):
+        ck.load_world_model(path)
+
+
+def test_auroc_matches_the_pairwise_definition():
+    rng = np.random.default_rng(0)
+    scores = rng.integers(0, 6, 200).astype(float)  # many ties
+    labels = rng.random(200) < 0.2
+    pos, neg = scores[labels], scores[~labels]
+    pairwise = ((pos[:, None] > neg[None]) + 0.5 * (pos[:, None] == neg[None])).mean()
+    assert auroc(scores, labels) == pytest.approx(pairwise)
+    assert auroc([0.1, 0.9], [0, 1]) == 1.0 and auroc([0.9, 0.1], [0, 1]) == 0.0
+    assert np.isnan(auroc([0.1, 0.2], [0, 0]))
+    assert spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)

@@ -1,0 +1,107 @@
+"""Stage 1, imitation learning: the policy's mean μ learns the human's actions a*.
+
+The paper's loss is L1 between μ and a* over the next H steps, on collision-free frames only.
+Two details matter and are easy to get wrong:
+- the target is a* (what the human commanded), never the executed action a: during
+  collection half the time carries injected noise, and a = a* + noise would teach the policy to
+  reproduce the noise instead of the recovery the human made against it;
+- windows that lead into a collision are left out (WindowDataset(collision_free_only=True)),
+  and steps past an episode's end are masked, so the padding never becomes a target.
+σ is not trained here (L1 on μ says nothing about it); it keeps its floor-bounded initial value
+until refinement samples with it.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+from torch import nn
+from torch.utils.data import default_collate
+
+from training.trainer import RunContext, StageResult, StageSpec, run_stage
+
+if TYPE_CHECKING:
+    from training.iterate import IterateConfig
+
+
+def imitation_loss(policy: nn.Module, batch: dict) -> tuple[torch.Tensor, dict]:
+    """Masked mean |μ − a*| over steps and both actions."""
+    mu, sigma = policy(batch["image"], batch["speed"])
+    target = batch["expert_actions"].to(mu.dtype)
+    mask = batch["mask"].to(mu.dtype).unsqueeze(-1).expand_as(mu)
+    err = (mu - target).abs() * mask
+    denom = mask.sum().clamp(min=1.0)
+    steer = err[..., 0].sum() / (mask[..., 0].sum().clamp(min=1.0))
+    throttle = err[..., 1].sum() / (mask[..., 1].sum().clamp(min=1.0))
+    # 0·Σσ keeps every parameter in the graph (σ is finite by construction), so
+    # DistributedDataParallel needs no find_unused_parameters should σ get its own head.
+    loss = err.sum() / denom + 0.0 * sigma.sum()
+    return loss, {"l1_steering": steer.detach(), "l1_throttle": throttle.detach()}
+
+
+def spec_for(cfg: IterateConfig) -> StageSpec:
+    return StageSpec(
+        name="imitation",
+        steps=cfg.imitation_steps,
+        batch_size=cfg.imitation_batch_size,
+        lr=cfg.imitation_lr,
+        grad_clip=cfg.grad_clip,
+        ckpt_every=cfg.ckpt_every,
+        log_every=cfg.log_every,
+        seed=cfg.seed + 1,
+        eval_every=cfg.eval_every,
+    )
+
+
+def train_imitation(
+    cfg: IterateConfig,
+    policy: nn.Module,
+    dataset,
+    ctx: RunContext | None = None,
+    *,
+    resume: dict | None = None,
+    val_dataset=None,
+) -> StageResult:
+    """Train `policy` in place on a collision-free WindowDataset; returns the loss history."""
+    ctx = ctx or RunContext()
+    policy.to(ctx.dist.device)
+
+    def loss_fn(model: nn.Module, batch: dict, step: int):
+        return imitation_loss(model, batch)
+
+    val_fn = None
+    if val_dataset is not None and len(val_dataset) > 0:
+        val_fn = lambda: {"loss": held_out_l1(policy, val_dataset, ctx.dist.device)}  # noqa: E731
+
+    return run_stage(
+        spec_for(cfg),
+        ctx,
+        dataset=dataset,
+        trainable=policy,
+        forward=policy,
+        loss_fn=loss_fn,
+        checkpoint_fields=lambda: {"policy": policy.state_dict(), "world_model": None},
+        resume=resume,
+        val_fn=val_fn,
+    )
+
+
+@torch.no_grad()
+def held_out_l1(
+    policy: nn.Module, dataset, device, batch_size: int = 64, limit: int = 512
+) -> float:
+    """Imitation L1 over (up to `limit`) windows, in eval mode; restores the previous mode."""
+    was_training = policy.training
+    policy.eval()
+    total, count = 0.0, 0.0
+    n = min(len(dataset), limit)
+    for start in range(0, n, batch_size):
+        items = [dataset[i] for i in range(start, min(n, start + batch_size))]
+        batch = {k: v.to(device) for k, v in default_collate(items).items()}
+        mu, _ = policy(batch["image"], batch["speed"])
+        mask = batch["mask"].to(mu.dtype).unsqueeze(-1).expand_as(mu)
+        total += float(((mu - batch["expert_actions"]).abs() * mask).sum())
+        count += float(mask.sum())
+    policy.train(was_training)
+    return total / count if count else float("nan")

@@ -1,0 +1,430 @@
+"""One DIRL iteration, top to bottom: data → imitation → world model → refinement → export → report.
+
+    python training/iterate.py --episodes episodes/ --out runs/iter1 --profile cpu
+    python training/iterate.py --episodes episodes/ --out runs/iter2 --init runs/iter1
+    torchrun --nproc_per_node 2 training/iterate.py …          # DistributedDataParallel
+
+Iteration 1 (no --init) learns the policy by imitation, then the world model, then refines the
+policy in the world model's imagination. A later iteration (--init runs/iterN-1) starts from the
+previous policy and world model, trains the world model on ALL the episodes given (old + new)
+and refines again; imitation does not run again (the paper's algorithm, DESIGN §2).
+
+Every number lives in IterateConfig; a profile name picks model sizes and a preset of steps and
+batch sizes (PRESETS), and `--set field=value` overrides any field. Checkpoints land in
+OUT/checkpoints every ckpt_every steps; Ctrl-C or SIGTERM finishes the step in flight and
+checkpoints it (a second Ctrl-C stops at once), and running the same command again resumes
+exactly where the run stopped. Only rank 0 writes files. Exit status: 0 done (or stopped by
+stop_after), 1 diverged or export refused, 2 bad input, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as `python training/iterate.py`: make `training` importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch
+
+from carrt.errors import UserError
+from training import checkpoint as ck
+from training.profiles import PROFILES, Profile, get_profile
+from training.trainer import (
+    Budget,
+    Dist,
+    Interrupted,
+    RunContext,
+    StopRequested,
+    init_distributed,
+    shutdown_distributed,
+)
+
+
+class UsageError(UserError):
+    """Bad input from the user: printed as one line, exit status 2."""
+
+
+@dataclass
+class IterateConfig:
+    """Everything one iteration does. Defaults are the paper's numbers where it gives them."""
+
+    # -- data and run
+    episodes: tuple[str, ...] = ()  # episode directories, or directories of them
+    out: str = ""  # run directory: checkpoints, policy.pt, policy.onnx, report.md, figures
+    init: str | None = None  # previous iteration's run directory (None: iteration 1)
+    profile: str = "cpu"  # model sizes and presets: tiny (tests), cpu (a laptop), paper (GPU)
+    val_fraction: float = 0.1  # share of EPISODES held out for the report's metrics
+    seed: int = 0  # seeds model init, batch order and refinement noise
+    device: str = "auto"  # auto (cuda if available), cpu, cuda, cuda:N
+    num_workers: int = 0  # DataLoader worker processes per training process
+    threads: int = 0  # torch intra-op threads per process (0: torch's default)
+    # -- stage 1: imitation (L1 between μ and a*, collision-free windows)
+    imitation_steps: int = 20000  # optimizer steps (the paper gives none; our choice)
+    imitation_batch_size: int = 128  # global batch (paper: 128)
+    imitation_lr: float = 1e-3  # Adam (paper: 1e-3)
+    # -- stage 2: world model (evidential image/speed regression + collision classification)
+    world_model_steps: int = 30000  # optimizer steps (our choice)
+    world_model_batch_size: int = 32  # global batch (paper: 32)
+    world_model_lr: float = 5e-4  # Adam (paper: 5e-4)
+    w_image: float = 1.0  # weight of L_image in L_w
+    w_speed: float = 1.0  # weight of L_speed in L_w
+    w_collision: float = 1.0  # weight of L_collision in L_w
+    collision_weight: float = 0.0  # weight of the collision class; 0 = n_safe/n_collision
+    evidential_lambda: float = 0.01  # λ of the evidential regulariser |y−γ|(2ν+α)
+    # -- stage 3: refinement in imagination
+    refine_steps: int = 5000  # optimizer steps (our choice)
+    refine_batch_size: int = 36  # global batch of start frames (paper: 36)
+    refine_lr: float = 1e-5  # Adam (paper: 1e-5)
+    refine_w_speed: float = 1.0  # reward per imagined m/s, per step
+    refine_w_collision: float = 10.0  # cost of imagined collision probability, per step
+    refine_w_uncertainty: float = 1.0  # cost of u_i + u_s + u_c, per step
+    uncertainty_clip: float = 10.0  # each u is clipped here in the refinement loss
+    no_uncertainty: bool = False  # the paper's "-unc" ablation: w_unc = 0
+    # -- every stage
+    grad_clip: float = 1.0  # max global gradient norm
+    log_every: int = 10  # steps between logged scalars (TensorBoard, loss history)
+    ckpt_every: int = 500  # steps between checkpoints (also one at the end of each stage)
+    eval_every: int = 0  # steps between held-out losses during training (0: off)
+    eval_windows: int = 2048  # held-out windows used by the final metrics
+    stop_after: int = 0  # stop after this many steps in this invocation (0: never); resumable
+    export: bool = True  # write policy.onnx through export.export_policy
+    figures: bool = True  # write figures/*.png
+    progress: bool = True  # tqdm bars on rank 0
+
+    @property
+    def profile_obj(self) -> Profile:
+        return get_profile(self.profile)
+
+    def validate(self) -> None:
+        if self.profile not in PROFILES:
+            raise UsageError(
+                f"unknown profile {self.profile!r}; choose one of {', '.join(PROFILES)}"
+            )
+        positive = [
+            "imitation_batch_size", "world_model_batch_size", "refine_batch_size", "log_every",
+            "imitation_lr", "world_model_lr", "refine_lr", "grad_clip", "uncertainty_clip",
+            "eval_windows",
+        ]  # fmt: skip
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise UsageError(f"{name} must be > 0, got {getattr(self, name)}")
+        non_negative = [
+            "imitation_steps", "world_model_steps", "refine_steps", "ckpt_every", "eval_every",
+            "stop_after", "num_workers", "collision_weight", "threads",
+        ]  # fmt: skip
+        for name in non_negative:
+            if getattr(self, name) < 0:
+                raise UsageError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise UsageError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
+
+
+# Steps and batches per profile, applied before --steps/--set: the paper's numbers need a GPU.
+PRESETS: dict[str, dict] = {
+    "tiny": dict(imitation_steps=30, world_model_steps=30, refine_steps=20,
+                 imitation_batch_size=16, world_model_batch_size=8, refine_batch_size=8,
+                 refine_lr=1e-4, log_every=1, ckpt_every=10, eval_windows=256),
+    "cpu": dict(imitation_steps=2000, world_model_steps=3000, refine_steps=500,
+                imitation_batch_size=32, world_model_batch_size=16, refine_batch_size=16,
+                log_every=10, ckpt_every=250, eval_every=250),
+    "paper": dict(num_workers=4, eval_every=1000),
+}  # fmt: skip
+
+SETTABLE = [f.name for f in dataclasses.fields(IterateConfig) if f.name not in ("episodes", "out")]
+
+
+def _parse_value(name: str, text: str, current):
+    kind = {f.name: f.type for f in dataclasses.fields(IterateConfig)}[name]
+    try:
+        if "bool" in kind:
+            low = text.strip().lower()
+            if low not in ("1", "0", "true", "false", "yes", "no", "on", "off"):
+                raise ValueError(text)
+            return low in ("1", "true", "yes", "on")
+        if "None" in kind and text.strip().lower() in ("", "none"):
+            return None
+        if kind.startswith("int"):
+            return int(text)
+        if kind.startswith("float"):
+            return float(text)
+        return text
+    except ValueError:
+        raise UsageError(f"--set {name}={text}: not a valid {kind}") from None
+
+
+def apply_set(cfg: IterateConfig, items: list[str]) -> IterateConfig:
+    for item in items:
+        name, eq, text = item.partition("=")
+        name = name.strip()
+        if not eq or not name:
+            raise UsageError(f"--set {item!r}: expected field=value")
+        if name not in SETTABLE:
+            raise UsageError(
+                f"--set {name}: unknown field (see IterateConfig in training/iterate.py)"
+            )
+        cfg = dataclasses.replace(cfg, **{name: _parse_value(name, text, getattr(cfg, name))})
+    return cfg
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, exit 2 — not argparse's usage block
+        raise UsageError(message)
+
+
+def parse_args(argv: list[str] | None = None) -> IterateConfig:
+    p = _Parser(prog="iterate.py", description=__doc__.split("\n")[0])
+    p.add_argument("--episodes", nargs="+", required=True, metavar="DIR")
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--init", metavar="DIR", help="previous iteration's run directory")
+    p.add_argument("--profile", help=f"{' | '.join(PROFILES)} (default: --init's, else cpu)")
+    p.add_argument("--steps", type=int, help="optimizer steps of every stage")
+    p.add_argument("--no-uncertainty", action="store_true", help="w_unc = 0 (the -unc ablation)")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--device", help="auto | cpu | cuda | cuda:N")
+    p.add_argument(
+        "--set", action="append", default=[], metavar="FIELD=VALUE",
+        help="any IterateConfig field (training/iterate.py), e.g. refine_lr=1e-5; repeatable",
+    )  # fmt: skip
+    a = p.parse_args(argv)
+    profile = a.profile or (_init_profile(a.init) if a.init else "cpu")
+    if profile not in PROFILES:
+        raise UsageError(f"unknown profile {profile!r}; choose one of {', '.join(PROFILES)}")
+    cfg = IterateConfig(episodes=tuple(a.episodes), out=a.out, init=a.init, profile=profile)
+    cfg = dataclasses.replace(cfg, **PRESETS.get(profile, {}))
+    if a.steps is not None:
+        cfg = dataclasses.replace(
+            cfg, imitation_steps=a.steps, world_model_steps=a.steps, refine_steps=a.steps
+        )
+    for name in ("seed", "device"):
+        if getattr(a, name) is not None:
+            cfg = dataclasses.replace(cfg, **{name: getattr(a, name)})
+    if a.no_uncertainty:
+        cfg = dataclasses.replace(cfg, no_uncertainty=True)
+    cfg = apply_set(cfg, a.set)
+    cfg.validate()
+    return cfg
+
+
+def _init_paths(init: str) -> tuple[Path, Path]:
+    p = Path(init)
+    return (
+        (p / "policy.pt", p / "world_model.pt")
+        if p.is_dir()
+        else (p, p.with_name("world_model.pt"))
+    )
+
+
+def _init_profile(init: str) -> str:
+    try:
+        return ck.load_checkpoint(_init_paths(init)[0])["profile"]
+    except ck.CheckpointError as exc:
+        raise UsageError(f"--init {init}: {exc}") from None
+
+
+# ------------------------------------------------------------------------------------- the run
+def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
+    """Train, export and report one iteration; returns a summary (also for non-zero ranks)."""
+    from training.data import (
+        WindowDataset,
+        compute_normalisation,
+        data_digest,
+        load_episodes,
+        split_by_episode,
+    )
+    from training.imitation import train_imitation
+    from training.models import PolicyNet, WorldModel
+    from training.refine import train_refine
+    from training.world_training import collision_class_weight, train_world_model
+
+    dist = dist or Dist()
+    cfg.validate()
+    out, profile = Path(cfg.out), cfg.profile_obj
+    missing = [e for e in cfg.episodes if not Path(e).exists()]
+    if missing:
+        raise UsageError(f"--episodes {missing[0]}: no such directory")
+    episodes = load_episodes(list(cfg.episodes)) if cfg.episodes else []
+    if not episodes:
+        raise UsageError(
+            f"no episodes with steps under {', '.join(cfg.episodes) or '(none given)'}"
+        )
+    train_eps, val_eps = split_by_episode(episodes, cfg.val_fraction, cfg.seed)
+    digest = data_digest(train_eps)
+
+    init_ckpt = init_wm = None
+    if cfg.init:
+        policy_path, wm_path = _init_paths(cfg.init)
+        try:
+            init_ckpt = ck.load_checkpoint(policy_path)
+            init_wm = ck.load_checkpoint(wm_path) if wm_path.is_file() else None
+        except ck.CheckpointError as exc:
+            raise UsageError(f"--init {cfg.init}: {exc}") from None
+        if init_ckpt["profile"] != cfg.profile:
+            raise UsageError(
+                f"--init {cfg.init} has profile {init_ckpt['profile']}, not {cfg.profile}"
+            )
+        from training.data import Normalisation
+
+        # The refined policy keeps the input scaling it learned with.
+        norm = Normalisation.from_dict(init_ckpt["normalisation"])
+        iteration = int(init_ckpt["iteration"]) + 1
+        stages = ["world_model", "refine"]
+    else:
+        norm = compute_normalisation(train_eps)
+        iteration = 1 if cfg.refine_steps > 0 else 0
+        stages = ["imitation", "world_model", "refine"]
+
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    policy, world_model = PolicyNet(profile), WorldModel(profile)
+    policy.set_normalisation(norm)
+    world_model.set_normalisation(norm)
+    if init_ckpt is not None:
+        policy.load_state_dict(init_ckpt["policy"])
+    if init_wm is not None and init_wm["world_model"] is not None:
+        world_model.load_state_dict(init_wm["world_model"])
+
+    targets = {s: getattr(cfg, f"{s}_steps") for s in stages}
+    existing = ck.resumable(out / "checkpoints", targets, profile=cfg.profile, digest=digest)
+    for stage in stages:  # later stages' checkpoints hold the newer weights: load in order
+        if stage in existing:
+            _load_weights(existing[stage], policy, world_model)
+
+    writer = None
+    if dist.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(out / "tensorboard"))
+    common = {
+        "config": dataclasses.asdict(cfg),
+        "profile": cfg.profile,
+        "normalisation": norm.to_dict(),
+        "data_digest": digest,
+        "iteration": iteration,
+        "code_version": ck.code_version(),
+        "episodes": [ep.name for ep in train_eps],
+    }
+    ctx = RunContext(
+        dist=dist,
+        ckpt_dir=out / "checkpoints",
+        common=common,
+        writer=writer,
+        budget=Budget(cfg.stop_after or None),
+        progress=cfg.progress,
+        num_workers=cfg.num_workers,
+    )
+    h, size = profile.horizon, profile.predict_size
+    windows = WindowDataset(train_eps, h, predict_size=size)
+    val_windows = WindowDataset(val_eps, h, predict_size=size) if val_eps else None
+    if len(windows) == 0:
+        raise UsageError("no training windows: every training episode has fewer than 2 steps")
+    results = {}
+    try:
+        for stage in stages:
+            resume = existing.get(stage)
+            if stage == "imitation":
+                free = WindowDataset(train_eps, h, predict_size=size, collision_free_only=True)
+                val_free = (
+                    WindowDataset(val_eps, h, predict_size=size, collision_free_only=True)
+                    if val_eps
+                    else None
+                )
+                if len(free) == 0 and cfg.imitation_steps > 0:
+                    raise UsageError("no collision-free windows in the training episodes")
+                results[stage] = train_imitation(
+                    cfg, policy, free, ctx, resume=resume, val_dataset=val_free
+                )
+            elif stage == "world_model":
+                weight = cfg.collision_weight or collision_class_weight(train_eps)
+                results[stage] = train_world_model(
+                    cfg, world_model, windows, norm, ctx, collision_weight=weight,
+                    policy=policy, resume=resume, val_dataset=val_windows,
+                )  # fmt: skip
+            else:
+                results[stage] = train_refine(
+                    cfg, policy, world_model, windows, norm, ctx,
+                    resume=resume, val_dataset=val_windows,
+                )  # fmt: skip
+    finally:
+        if writer is not None:
+            writer.flush()
+    summary = {"iteration": iteration, "stages": results, "out": str(out)}
+    if not dist.is_main:
+        return summary
+
+    last = next((s for s in reversed(stages) if results[s].steps > 0), stages[-1])
+    final = {**common, "stage": last, "step": results[last].steps, "optimizer": None}
+    ck.save_checkpoint(
+        out / "policy.pt", **{**final, "policy": policy.state_dict(), "world_model": None}
+    )
+    ck.save_checkpoint(
+        out / "world_model.pt",
+        **{**final, "policy": policy.state_dict(), "world_model": world_model.state_dict()},
+    )
+    from training.report import finish_run
+
+    summary.update(
+        finish_run(
+            cfg, out, policy=policy, world_model=world_model, norm=norm,
+            train_eps=train_eps, val_eps=val_eps, episodes=episodes, digest=digest,
+            results=results, iteration=iteration, device=dist.device, writer=writer,
+            world_size=dist.world_size,
+        )
+    )  # fmt: skip
+    writer.close()
+    return summary
+
+
+def _load_weights(c: dict, policy, world_model) -> None:
+    if c["policy"]:
+        policy.load_state_dict(c["policy"])
+    if c["world_model"] is not None:
+        world_model.load_state_dict(c["world_model"])
+
+
+def main(argv: list[str] | None = None) -> int:
+    dist = None
+    try:
+        cfg = parse_args(argv)
+        try:
+            dist = init_distributed(cfg.device)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+        summary = run(cfg, dist)
+        if dist.is_main:
+            for line in summary.get("lines", []):
+                print(line)
+        return summary.get("exit_code", 0)
+    except (UserError, ck.CheckpointError) as exc:
+        if dist is None or dist.is_main:
+            print(f"iterate.py: error: {exc}", file=sys.stderr)
+        return 2
+    except StopRequested as exc:
+        if dist is None or dist.is_main:
+            print(f"iterate.py: stopped at {exc} (stop_after); run the same command to resume")
+        return 0
+    except FloatingPointError as exc:
+        print(
+            f"iterate.py: training diverged: {exc}; the last checkpoint is intact", file=sys.stderr
+        )
+        return 1
+    except Interrupted as exc:
+        if dist is None or dist.is_main:
+            print(f"iterate.py: interrupted at {exc}; checkpoint saved, run the same command "
+                  "to resume", file=sys.stderr)  # fmt: skip
+        return 130
+    except KeyboardInterrupt:
+        print("iterate.py: interrupted; run the same command to resume from the last checkpoint",
+              file=sys.stderr)  # fmt: skip
+        return 130
+    finally:
+        shutdown_distributed()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,376 @@
+"""The policy and the world model ("Reveries-net"), with the paper's structure (DESIGN §2).
+
+Both take the raw uint8 frame and the speed in m/s, exactly as carrt records and feeds them:
+the normalisation lives in buffers inside the modules, so it is saved with the weights and
+exported into the ONNX graph, and no caller can normalise twice or forget to.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from carrt.model_contract import ACTION_HIGH, ACTION_LOW
+from training.losses import dirichlet_uncertainty, nig_uncertainty
+from training.profiles import Profile
+
+if TYPE_CHECKING:
+    from training.data import Normalisation
+
+NU_MIN = 1e-5  # ν floor (evidential pitfalls: ν → 0 makes the NLL blow up)
+ALPHA_MARGIN = 1e-3  # α ≥ 1 + margin, so the uncertainty β/(α − 1) stays finite
+BETA_MIN = 1e-6
+
+
+# --------------------------------------------------------------------------------- backbone
+class BasicBlock(nn.Module):
+    """torchvision's BasicBlock, with its attribute names (so its state_dict keys match)."""
+
+    def __init__(self, cin: int, cout: int, stride: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(cin, cout, 3, stride, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(cout)
+        self.conv2 = nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
+        self.bn2 = nn.BatchNorm2d(cout)
+        self.downsample: nn.Module | None = None
+        if stride != 1 or cin != cout:
+            self.downsample = nn.Sequential(
+                nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout)
+            )
+
+    def forward(self, x: Tensor) -> Tensor:
+        out = F.relu(self.bn1(self.conv1(x)))
+        out = self.bn2(self.conv2(out))
+        identity = x if self.downsample is None else self.downsample(x)
+        return F.relu(out + identity)
+
+
+class ResNet18Backbone(nn.Module):
+    """ResNet18 without fc, channels scaled by `width` (64 = torchvision's resnet18 exactly).
+
+    Written here because torchvision's wheel drags in a CUDA torch (DESIGN §3); the parameter
+    names are torchvision's, so pretrained ImageNet weights load from a state_dict file.
+    """
+
+    def __init__(self, width: int = 64) -> None:
+        super().__init__()
+        self.width = width
+        self.out_features = 8 * width
+        self.conv1 = nn.Conv2d(3, width, 7, 2, 3, bias=False)
+        self.bn1 = nn.BatchNorm2d(width)
+        self.maxpool = nn.MaxPool2d(3, 2, 1)
+        chans = [width, 2 * width, 4 * width, 8 * width]
+        cin = width
+        for i, cout in enumerate(chans):
+            stride = 1 if i == 0 else 2
+            layer = nn.Sequential(BasicBlock(cin, cout, stride), BasicBlock(cout, cout, 1))
+            setattr(self, f"layer{i + 1}", layer)
+            cin = cout
+        for m in self.modules():  # torchvision's initialisation
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+            elif isinstance(m, nn.BatchNorm2d):
+                nn.init.ones_(m.weight)
+                nn.init.zeros_(m.bias)
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = self.maxpool(F.relu(self.bn1(self.conv1(x))))
+        x = self.layer4(self.layer3(self.layer2(self.layer1(x))))
+        return x.mean(dim=(2, 3))
+
+    def load_pretrained(self, path: str | Path) -> None:
+        """Load a torchvision resnet18 state_dict file (fc.* ignored; "module." prefixes from
+        DataParallel stripped). Raises ValueError naming what does not fit."""
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
+            state = state["state_dict"]
+        state = {k.removeprefix("module."): v for k, v in state.items()}
+        state = {k: v for k, v in state.items() if not k.startswith("fc.")}
+        own = self.state_dict()
+        missing = sorted(set(own) - set(state))
+        unexpected = sorted(set(state) - set(own))
+        wrong = [k for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
+        if missing or unexpected or wrong:
+            hint = " (pretrained resnet18 weights need width 64)" if wrong else ""
+            raise ValueError(
+                f"{path}: not a resnet18 state_dict for width {self.width}{hint}: "
+                f"missing {missing[:3]}, unexpected {unexpected[:3]}, wrong shape {wrong[:3]}"
+            )
+        self.load_state_dict(state, strict=True)
+
+
+# ------------------------------------------------------------------------------ shared parts
+class _Normalised(nn.Module):
+    """Holds the normalisation as buffers: saved in state_dict, traced into the ONNX graph."""
+
+    def _init_normalisation(self) -> None:
+        self.register_buffer("image_mean", torch.full((1, 3, 1, 1), 0.5))
+        self.register_buffer("image_std", torch.full((1, 3, 1, 1), 0.25))
+        self.register_buffer("speed_mean", torch.zeros(1))
+        self.register_buffer("speed_std", torch.ones(1))
+
+    def set_normalisation(self, norm: Normalisation) -> None:
+        self.image_mean.copy_(torch.tensor(norm.image_mean).view(1, 3, 1, 1))
+        self.image_std.copy_(torch.tensor(norm.image_std).view(1, 3, 1, 1))
+        self.speed_mean.fill_(float(norm.speed_mean))
+        self.speed_std.fill_(float(norm.speed_std))
+
+    def normalisation(self) -> Normalisation:
+        from training.data import Normalisation
+
+        return Normalisation(
+            image_mean=tuple(self.image_mean.flatten().tolist()),
+            image_std=tuple(self.image_std.flatten().tolist()),
+            speed_mean=float(self.speed_mean),
+            speed_std=float(self.speed_std),
+        )
+
+    def normalise_image(self, image: Tensor) -> Tensor:
+        """uint8 (..., h, w, 3) NHWC, 0..255 → float (..., 3, h, w) in normalised units."""
+        nd = image.dim()  # explicit non-negative perm: movedim(-1, -3) exports a bad Transpose
+        perm = [*range(nd - 3), nd - 1, nd - 3, nd - 2]
+        x = image.to(torch.float32).permute(*perm) / 255.0
+        return (x - self.image_mean.squeeze(0)) / self.image_std.squeeze(0)
+
+    def normalise_speed(self, speed: Tensor) -> Tensor:
+        """m/s → normalised units (any shape)."""
+        return (speed.to(torch.float32) - self.speed_mean) / self.speed_std
+
+    def denormalise_speed(self, speed: Tensor) -> Tensor:
+        """Normalised units → m/s (any shape)."""
+        return speed * self.speed_std + self.speed_mean
+
+    def _encode(self, image: Tensor, speed: Tensor) -> Tensor:
+        """(N,96,96,3) uint8 and (N,1) m/s → concat(f_i, f_s) (N, 8·width + speed_features)."""
+        if speed.dim() == 1:
+            speed = speed.unsqueeze(-1)
+        f_i = self.backbone(self.normalise_image(image))
+        f_s = self.speed_net(self.normalise_speed(speed))
+        return torch.cat([f_i, f_s], dim=-1)
+
+
+def _speed_net(features: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Linear(1, features), nn.ReLU(), nn.Linear(features, features), nn.ReLU()
+    )
+
+
+def clamp_actions(actions: Tensor) -> Tensor:
+    """Steering into [-1, 1], throttle into [0, 1] (carrt.model_contract's bounds)."""
+    lo = actions.new_tensor(ACTION_LOW)
+    hi = actions.new_tensor(ACTION_HIGH)
+    return torch.maximum(torch.minimum(actions, hi), lo)
+
+
+def sample_actions(mu: Tensor, sigma: Tensor, eps: Tensor) -> Tensor:
+    """a = μ + σ·ε (reparameterised: differentiable in μ and σ), clamped to the bounds."""
+    return clamp_actions(mu + sigma * eps)
+
+
+# ------------------------------------------------------------------------------------ policy
+class PolicyNet(_Normalised):
+    """ResNet18 image features + dense speed features → Gaussian over the next H actions."""
+
+    def __init__(self, profile: Profile) -> None:
+        super().__init__()
+        self.profile = profile
+        self.horizon = profile.horizon
+        self.min_sigma = profile.min_sigma
+        self._init_normalisation()
+        self.backbone = ResNet18Backbone(profile.width)
+        self.speed_net = _speed_net(profile.speed_features)
+        hidden = profile.policy_hidden
+        self.head = nn.Sequential(
+            nn.Linear(profile.image_features + profile.speed_features, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, profile.horizon * 4),
+        )
+        out = self.head[-1]
+        with torch.no_grad():  # start near μ = (0, 0.5), σ = min_sigma + 0.2
+            out.weight.mul_(0.1)
+            bias = out.bias.view(profile.horizon, 4)
+            bias.zero_()
+            bias[:, 2:].fill_(float(torch.log(torch.expm1(torch.tensor(0.2)))))
+
+    def forward(self, image: Tensor, speed: Tensor) -> tuple[Tensor, Tensor]:
+        out = self.head(self._encode(image, speed)).view(-1, self.horizon, 4)
+        mu = torch.stack([torch.tanh(out[..., 0]), torch.sigmoid(out[..., 1])], dim=-1)
+        sigma = self.min_sigma + F.softplus(out[..., 2:])
+        return mu, sigma
+
+    def sample(self, image: Tensor, speed: Tensor, eps: Tensor) -> Tensor:
+        mu, sigma = self(image, speed)
+        return sample_actions(mu, sigma, eps)
+
+
+# ------------------------------------------------------------------------------- world model
+@dataclass
+class NIG:
+    """Normal-Inverse-Gamma parameters; the prediction is γ. ν > 0, α > 1, β > 0."""
+
+    gamma: Tensor
+    nu: Tensor
+    alpha: Tensor
+    beta: Tensor
+
+    def map(self, fn: Callable[[Tensor], Tensor]) -> NIG:
+        """The same op on all four (index, detach, reshape, .to(device))."""
+        return NIG(fn(self.gamma), fn(self.nu), fn(self.alpha), fn(self.beta))
+
+    @classmethod
+    def from_raw(cls, raw: Tensor, dim: int) -> NIG:
+        """Split four raw channels along `dim` and constrain them (DESIGN §2 pitfalls)."""
+        gamma, nu, alpha, beta = raw.unbind(dim)
+        return cls(
+            gamma=gamma,
+            nu=F.softplus(nu).clamp(min=NU_MIN),
+            alpha=F.softplus(alpha) + 1.0 + ALPHA_MARGIN,
+            beta=F.softplus(beta) + BETA_MIN,
+        )
+
+
+@dataclass
+class WorldPrediction:
+    image: NIG  # each (N, H, 3, P, P), normalised image units
+    speed: NIG  # each (N, H, 1), normalised speed units
+    collision: Tensor  # (N, H, 2) evidence ≥ 0, class 1 = collision
+
+
+def _decoder_plan(size: int) -> tuple[int, int]:
+    """(start side, doublings): 96 → 3·2⁵, 32 → 4·2³, 16 → 4·2², 20 → 5·2², 15 → 15·2⁰."""
+    side, ups = size, 0
+    while side % 2 == 0 and side // 2 >= 3:
+        side, ups = side // 2, ups + 1
+    return side, ups
+
+
+class ImageDecoder(nn.Module):
+    """GRU state → NIG parameters per pixel and channel: linear to a small map, ×2 upsampling
+    convolutions up to predict_size, then a 3×3 conv to 4·3 channels.
+
+    The ×2 upsampling is learned (4×4 transposed conv, stride 2) instead of nearest-neighbour
+    upsampling followed by a 3×3 conv: 2.3× faster on a CPU for the N·H small maps decoded per
+    batch; the final 3×3 conv smooths the transposed convs' checkerboard pattern.
+    """
+
+    def __init__(self, hidden: int, width: int, size: int) -> None:
+        super().__init__()
+        self.side, ups = _decoder_plan(size)
+        floor = max(8, width // 4)
+        chans = [max(2 * width >> i, floor) for i in range(ups + 1)]
+        self.chans0 = chans[0]
+        self.fc = nn.Linear(hidden, chans[0] * self.side * self.side)
+        layers: list[nn.Module] = []
+        for cin, cout in itertools.pairwise(chans):
+            layers += [nn.ConvTranspose2d(cin, cout, 4, 2, 1), nn.ReLU()]
+        layers.append(nn.Conv2d(chans[-1], 4 * 3, 3, 1, 1))
+        self.convs = nn.Sequential(*layers)
+
+    def forward(self, h: Tensor) -> Tensor:
+        """(B, hidden) → (B, 4, 3, P, P)."""
+        x = F.relu(self.fc(h)).view(-1, self.chans0, self.side, self.side)
+        x = self.convs(x)
+        return x.view(x.shape[0], 4, 3, x.shape[-2], x.shape[-1])
+
+
+def _mlp(cin: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(cin, cin), nn.ReLU(), nn.Linear(cin, cout))
+
+
+class WorldModel(_Normalised):
+    """Reveries-net: (image_t, speed_t, a_t..a_{t+H−1}) → images, speeds, collisions at
+    t+1..t+H, each with evidential uncertainty.
+
+    concat(f_i, f_s) initialises every GRU layer. The paper gives f_i 512 + f_s 128 = 640 and a
+    GRU of hidden 512, sizes that do not line up; we project the concatenation to the hidden
+    size with one linear layer (+ tanh, the GRU's state range) per GRU layer. The GRU is three
+    single-layer nn.GRU modules stacked by hand, so each layer's state sequence is available:
+    layer 1's drives the image decoder, layer 2's the speed head, the last layer's the
+    collision head (the paper's assignment).
+    """
+
+    def __init__(self, profile: Profile) -> None:
+        super().__init__()
+        self.profile = profile
+        self.horizon = profile.horizon
+        self._frozen = False
+        self._init_normalisation()
+        hidden = profile.gru_hidden
+        self.backbone = ResNet18Backbone(profile.width)
+        self.speed_net = _speed_net(profile.speed_features)
+        context = profile.image_features + profile.speed_features
+        self.init_state = nn.ModuleList(
+            nn.Linear(context, hidden) for _ in range(profile.gru_layers)
+        )
+        self.action_net = nn.Sequential(nn.Linear(2, profile.action_features), nn.ReLU())
+        self.gru = nn.ModuleList(
+            nn.GRU(profile.action_features if i == 0 else hidden, hidden, batch_first=True)
+            for i in range(profile.gru_layers)
+        )
+        self.image_head = ImageDecoder(hidden, profile.width, profile.predict_size)
+        self.speed_head = _mlp(hidden, 4)
+        self.collision_head = _mlp(hidden, 2)
+
+    def forward(self, image: Tensor, speed: Tensor, actions: Tensor) -> WorldPrediction:
+        context = self._encode(image, speed)
+        x = self.action_net(actions.to(torch.float32))
+        states: list[Tensor] = []
+        for init, gru in zip(self.init_state, self.gru, strict=True):
+            h0 = torch.tanh(init(context)).unsqueeze(0)
+            x, _ = gru(x, h0)
+            states.append(x)
+        n, h = x.shape[0], x.shape[1]
+        img = self.image_head(states[0].reshape(n * h, -1))
+        img = img.view(n, h, *img.shape[1:])  # (N, H, 4, 3, P, P)
+        spd = self.speed_head(states[min(1, len(states) - 1)])  # (N, H, 4)
+        return WorldPrediction(
+            image=NIG.from_raw(img, dim=2),
+            speed=NIG.from_raw(spd.unsqueeze(-1), dim=2),
+            collision=F.softplus(self.collision_head(states[-1])),
+        )
+
+    def uncertainties(
+        self, pred: WorldPrediction, clip: float | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """(u_image, u_speed, u_collision), each (N, H); u_image averages over the pixels.
+        `clip` caps the regression uncertainties, which explode as α → 1."""
+        u_image = nig_uncertainty(pred.image)
+        u_speed = nig_uncertainty(pred.speed)
+        if clip is not None:
+            u_image, u_speed = u_image.clamp(max=clip), u_speed.clamp(max=clip)
+        return (
+            u_image.flatten(2).mean(-1),
+            u_speed.squeeze(-1),
+            dirichlet_uncertainty(pred.collision),
+        )
+
+    def freeze(self) -> None:
+        """For refinement: eval() (BatchNorm statistics frozen), no parameter gradients, and
+        train() becomes a no-op, so a later policy.train()-style call cannot unfreeze BatchNorm;
+        gradients still flow through to the actions."""
+        self.eval()
+        self.requires_grad_(False)
+        self._frozen = True
+
+    def unfreeze(self) -> None:
+        self._frozen = False
+        self.requires_grad_(True)
+        self.train()
+
+    def train(self, mode: bool = True) -> WorldModel:
+        return super().train(mode and not getattr(self, "_frozen", False))
+
+
+def count_parameters(module: nn.Module, names: Sequence[str] | None = None) -> int:
+    """Trainable-or-not parameter count (of the named children only, if given)."""
+    mods = [module] if names is None else [getattr(module, n) for n in names]
+    return sum(p.numel() for m in mods for p in m.parameters())

@@ -1,0 +1,60 @@
+"""Model sizes by name, so a run, its checkpoint and its export agree on one architecture.
+
+`paper` is the paper's network (ResNet18, GRU 512, full-resolution image prediction) for a GPU;
+`cpu` trains a few thousand steps on a laptop in minutes; `tiny` exists for tests, where a
+forward and backward pass must take milliseconds. A checkpoint stores only the profile's name,
+so changing a profile's numbers makes old checkpoints unloadable: add a profile instead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Profile:
+    name: str
+    width: int  # backbone base channels: 64 is exactly torchvision's resnet18
+    speed_features: int  # dense speed features f_s
+    action_features: int  # per-step action features fed to the GRU
+    gru_hidden: int
+    gru_layers: int = 3  # layer 1 → images, layer 2 → speed, last → collision
+    predict_size: int = 96  # side of the predicted future images (pixels)
+    policy_hidden: int = 256
+    horizon: int = 10  # H, the paper's 1 s at 10 Hz
+    min_sigma: float = 0.05  # floor on the policy's σ (DESIGN §2 pitfalls)
+
+    def __post_init__(self) -> None:
+        sizes = ("width", "speed_features", "action_features", "gru_hidden", "gru_layers")
+        sizes += ("predict_size", "policy_hidden", "horizon")
+        bad = [f"{k}={getattr(self, k)}" for k in sizes if int(getattr(self, k)) < 1]
+        if not self.min_sigma > 0:
+            bad.append(f"min_sigma={self.min_sigma}")
+        if bad:
+            raise ValueError(f"profile {self.name!r}: must be positive: {', '.join(bad)}")
+
+    @property
+    def image_features(self) -> int:
+        """f_i: the backbone's pooled output (512 for the paper)."""
+        return 8 * self.width
+
+
+_PROFILES = (
+    Profile("tiny", 8, speed_features=16, action_features=8, gru_hidden=32,
+            predict_size=16, policy_hidden=32),
+    Profile("cpu", 24, speed_features=64, action_features=32, gru_hidden=128,
+            predict_size=32, policy_hidden=128),
+    Profile("paper", 64, speed_features=128, action_features=64, gru_hidden=512,
+            predict_size=96, policy_hidden=256),
+)  # fmt: skip
+PROFILES: dict[str, Profile] = {p.name: p for p in _PROFILES}
+
+
+def get_profile(name: str | Profile) -> Profile:
+    """The profile called `name` (a Profile is passed through)."""
+    if isinstance(name, Profile):
+        return name
+    try:
+        return PROFILES[name]
+    except KeyError:
+        raise ValueError(f"unknown profile {name!r}; choose one of {', '.join(PROFILES)}") from None

@@ -1,0 +1,184 @@
+"""Stage 3, policy refinement in the world model's imagination (the paper's "reveries").
+
+From real start frames the policy samples a = μ + σ·ε for H steps (reparameterised, so the
+gradient reaches μ and σ), the FROZEN world model imagines the speeds, collision signals and
+uncertainties those actions lead to, and the policy descends
+
+    Σ_t [ −w_spd·ŝ_t + w_coll·p̂(collision)_t + w_unc·(u_i + u_s + u_c)_t ]
+
+ŝ is in m/s (de-normalised), p̂ = (e₁+1)/S is the Dirichlet's expected collision probability,
+and each uncertainty is clipped at `uncertainty_clip` because u = (1+1/ν)β/(α−1) explodes as
+α → 1 and a single such step would otherwise own the whole gradient. w_unc = 0 is the paper's
+"-unc" ablation (`--no-uncertainty`).
+
+Frozen means eval() + requires_grad False (WorldModel.freeze()): no parameter moves and the
+BatchNorm running statistics stay those learned on real data — in train mode the imagined
+batches would overwrite them. The gradient still flows through the world model to the actions.
+ε is drawn from a generator seeded by (seed, step, rank), so a resumed run draws the same noise.
+
+The policy itself is refined in eval() mode (our choice; the paper does not say): its BatchNorm
+keeps the statistics of the real frames it saw during imitation, the network being optimised
+is exactly the one exported to the car, and the objective is not perturbed by the statistics
+of each small batch of start frames.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+from torch import nn
+
+from training.losses import dirichlet_probability
+from training.trainer import RunContext, StageResult, StageSpec, run_stage
+from training.world_training import Targets
+
+if TYPE_CHECKING:
+    from training.data import Normalisation
+    from training.iterate import IterateConfig
+
+
+class PolicySampler(nn.Module):
+    """forward() = policy.sample(), so DistributedDataParallel sees the sampling pass."""
+
+    def __init__(self, policy: nn.Module) -> None:
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, image, speed, eps):
+        return self.policy.sample(image, speed, eps)
+
+
+def imagine(
+    world_model: nn.Module, targets: Targets, image, speed, actions, uncertainty_clip: float
+) -> dict[str, torch.Tensor]:
+    """The world model's view of an action sequence: (N, H) speed, p(collision), uncertainties."""
+    pred = world_model(image, speed, actions)
+    clip = float(uncertainty_clip)
+    # clip= caps u_image per pixel before the mean, so one exploding pixel cannot dominate.
+    u_image, u_speed, u_coll = world_model.uncertainties(pred, clip=clip)
+    return {
+        "speed": targets.speeds_to_mps(pred.speed.gamma[..., 0]),
+        "p_collision": dirichlet_probability(pred.collision)[..., 1],
+        "u_image": u_image.clamp(max=clip),
+        "u_speed": u_speed.clamp(max=clip),
+        "u_collision": u_coll.clamp(max=clip),
+    }
+
+
+def refine_objective(
+    imagined: dict[str, torch.Tensor], w_speed: float, w_collision: float, w_uncertainty: float
+) -> tuple[torch.Tensor, dict]:
+    """Sum over the horizon, mean over the batch."""
+    u = imagined["u_image"] + imagined["u_speed"] + imagined["u_collision"]
+    per_step = (
+        -w_speed * imagined["speed"] + w_collision * imagined["p_collision"] + w_uncertainty * u
+    )
+    metrics = {k: v.detach().mean() for k, v in imagined.items()}
+    return per_step.sum(dim=1).mean(), metrics
+
+
+def noise(shape, seed: int, step: int, rank: int, device) -> torch.Tensor:
+    gen = torch.Generator().manual_seed((seed * 1_000_003 + step) * 1009 + rank)
+    return torch.randn(shape, generator=gen).to(device)
+
+
+def spec_for(cfg: IterateConfig) -> StageSpec:
+    return StageSpec(
+        name="refine",
+        steps=cfg.refine_steps,
+        batch_size=cfg.refine_batch_size,
+        lr=cfg.refine_lr,
+        grad_clip=cfg.grad_clip,
+        ckpt_every=cfg.ckpt_every,
+        log_every=cfg.log_every,
+        seed=cfg.seed + 3,
+        eval_every=cfg.eval_every,
+        # The policy is refined as it runs on the car: eval-mode BatchNorm with the statistics
+        # of real frames, not those of each small batch of start frames.
+        train_mode=False,
+    )
+
+
+def uncertainty_weight(cfg: IterateConfig) -> float:
+    return 0.0 if cfg.no_uncertainty else cfg.refine_w_uncertainty
+
+
+def train_refine(
+    cfg: IterateConfig,
+    policy: nn.Module,
+    world_model: nn.Module,
+    dataset,
+    norm: Normalisation,
+    ctx: RunContext | None = None,
+    *,
+    resume: dict | None = None,
+    val_dataset=None,
+) -> StageResult:
+    """Refine `policy` in place against the frozen `world_model` from the dataset's start frames."""
+    ctx = ctx or RunContext()
+    device = ctx.dist.device
+    policy.to(device)
+    world_model.to(device)
+    world_model.freeze()
+    targets = Targets(norm).to(device)
+    horizon = cfg.profile_obj.horizon
+    weights = (cfg.refine_w_speed, cfg.refine_w_collision, uncertainty_weight(cfg))
+    sampler = PolicySampler(policy)
+
+    def loss_fn(model: nn.Module, batch: dict, step: int):
+        eps = noise((len(batch["speed"]), horizon, 2), cfg.seed, step, ctx.dist.rank, device)
+        actions = model(batch["image"], batch["speed"], eps)
+        imagined = imagine(
+            world_model, targets, batch["image"], batch["speed"], actions, cfg.uncertainty_clip
+        )
+        loss, metrics = refine_objective(imagined, *weights)
+        return loss, metrics
+
+    val_fn = None
+    if val_dataset is not None and len(val_dataset) > 0:
+
+        def val_fn() -> dict:
+            return held_out_objective(cfg, policy, world_model, targets, val_dataset, device)
+
+    return run_stage(
+        spec_for(cfg),
+        ctx,
+        dataset=dataset,
+        trainable=policy,
+        forward=sampler,
+        loss_fn=loss_fn,
+        checkpoint_fields=lambda: {
+            "policy": policy.state_dict(),
+            "world_model": world_model.state_dict(),
+        },
+        resume=resume,
+        val_fn=val_fn,
+    )
+
+
+@torch.no_grad()
+def held_out_objective(
+    cfg: IterateConfig, policy, world_model, targets, dataset, device, batch_size=32, limit=256
+) -> dict:
+    """The refinement objective with ε = 0 (the μ the car would drive) on fixed windows."""
+    was_training = policy.training
+    policy.eval()
+    world_model.eval()
+    sums: dict[str, float] = {}
+    batches = 0
+    n = min(len(dataset), limit)
+    weights = (cfg.refine_w_speed, cfg.refine_w_collision, uncertainty_weight(cfg))
+    for start in range(0, n, batch_size):
+        batch = torch.utils.data.default_collate(
+            [dataset[i] for i in range(start, min(n, start + batch_size))]
+        )
+        image, speed = batch["image"].to(device), batch["speed"].to(device)
+        mu, _sigma = policy(image, speed)
+        imagined = imagine(world_model, targets, image, speed, mu, cfg.uncertainty_clip)
+        loss, metrics = refine_objective(imagined, *weights)
+        for k, v in {"loss": loss, **metrics}.items():
+            sums[k] = sums.get(k, 0.0) + float(v)
+        batches += 1
+    policy.train(was_training)
+    return {k: v / batches for k, v in sums.items()}

@@ -1,0 +1,192 @@
+"""The end of an iteration on rank 0: held-out metrics, figures, ONNX export, report.md.
+
+report.md is what a person reads before putting the policy on the car: which data, how far
+each stage got, whether the world model beats the trivial baselines on episodes it never saw,
+and whether the export passed its parity check. metrics.json holds the same numbers for tools.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from training.evaluate import evaluate
+from training.figures import loss_curves, reveries, uncertainty_vs_error
+
+
+def _fmt(x, digits: int = 4) -> str:
+    if x is None:
+        return "—"
+    if isinstance(x, float):
+        return "n/a" if not math.isfinite(x) else f"{x:.{digits}g}"
+    return str(x)
+
+
+def _export(cfg, out: Path) -> tuple[list[str], dict | None, int]:
+    """(report lines, ExportReport as a dict, exit code). A missing export/ is not an error."""
+    if not cfg.export:
+        return ["export skipped (export=false)"], None, 0
+    try:
+        from export import export_policy
+    except ImportError as exc:
+        return [f"export skipped: export/ is not available ({exc})"], None, 0
+    try:
+        rep = export_policy(out / "policy.pt", out / "policy.onnx", list(cfg.episodes))
+    except Exception as exc:  # refused or failed: the run's weights are still in policy.pt
+        return [f"export FAILED: {' '.join(str(exc).split())}"], None, 1
+    return rep.render(), rep.as_dict(), 0
+
+
+def finish_run(
+    cfg, out: Path, *, policy, world_model, norm, train_eps, val_eps, episodes, digest,
+    results, iteration, device, writer=None, world_size=1,
+) -> dict:  # fmt: skip
+    from training.data import WindowDataset
+
+    held_out = bool(val_eps)
+    eval_eps = val_eps if held_out else train_eps
+    profile = cfg.profile_obj
+    metrics, arrays = evaluate(
+        policy, world_model, eval_eps, profile, device, limit=cfg.eval_windows
+    )
+    metrics["held_out"] = held_out
+    if writer is not None:
+        for k, v in metrics.items():
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+                writer.add_scalar(f"held_out/{k}", v, iteration)
+
+    figures: dict[str, str] = {}
+    if cfg.figures:
+        fig_dir = out / "figures"
+        histories = {name: r.history for name, r in results.items()}
+        loss_curves(histories, fig_dir / "loss_curves.png")
+        uncertainty_vs_error(arrays, fig_dir / "uncertainty_vs_error.png")
+        windows = WindowDataset(eval_eps, profile.horizon, predict_size=profile.predict_size)
+        reveries(world_model, windows, device, fig_dir / "reveries.png")
+        figures = {
+            "Loss curves": "figures/loss_curves.png",
+            "Uncertainty against error (held-out)": "figures/uncertainty_vs_error.png",
+            "Reveries: real future, predicted, uncertainty": "figures/reveries.png",
+        }
+
+    export_lines, export_info, exit_code = _export(cfg, out)
+    stages = {
+        name: {
+            "steps": r.steps,
+            "final": r.final(),
+            "samples_per_s": r.samples_per_s if r.seconds > 0 else None,
+            "seconds_this_invocation": r.seconds,
+        }
+        for name, r in results.items()
+    }
+    data = {
+        "episodes": len(episodes),
+        "frames": int(sum(ep.n for ep in episodes)),
+        "train_episodes": [ep.name for ep in train_eps],
+        "held_out_episodes": [ep.name for ep in val_eps],
+        "train_frames": int(sum(ep.n for ep in train_eps)),
+        "held_out_frames": int(sum(ep.n for ep in val_eps)),
+        "collision_frames": int(sum(int(ep.collision.sum()) for ep in episodes)),
+        "train_digest": digest,
+    }
+    record = {
+        "iteration": iteration, "profile": cfg.profile, "world_size": world_size,
+        "device": str(device), "data": data, "stages": stages,
+        "metrics": metrics, "figures": figures, "export": export_info,
+        "normalisation": norm.to_dict(),
+    }  # fmt: skip
+    (out / "metrics.json").write_text(json.dumps(_finite(record), indent=2, default=str) + "\n")
+    (out / "report.md").write_text(render(cfg, record, export_lines))
+    lines = [f"wrote {out / 'report.md'}", *export_lines]
+    return {"metrics": metrics, "record": record, "lines": lines, "exit_code": exit_code}
+
+
+def render(cfg, r: dict, export_lines: list[str]) -> str:
+    d, m = r["data"], r["metrics"]
+    src = "held-out episodes" if m.get("held_out") else "TRAINING episodes (no held-out split)"
+    md = [
+        f"# carrt DIRL iteration {r['iteration']} — `{cfg.out}`",
+        "",
+        f"Profile `{cfg.profile}`, {r['world_size']} process(es) on {r['device']}, "
+        f"seed {cfg.seed}, init `{cfg.init or '—'}`, "
+        f"uncertainty term {'off (-unc ablation)' if cfg.no_uncertainty else 'on'}.",
+        "",
+        "## Data",
+        "",
+        f"- episodes: {d['episodes']} ({d['frames']} frames; {d['collision_frames']} frames "
+        "labelled collision)",
+        f"- split by episode: {len(d['train_episodes'])} train ({d['train_frames']} frames), "
+        f"{len(d['held_out_episodes'])} held out ({d['held_out_frames']} frames): "
+        f"{', '.join(d['held_out_episodes']) or '—'}",
+        f"- training data digest: `{d['train_digest']}`",
+        "",
+        "## Stages",
+        "",
+        "| stage | steps | samples/s | final loss | final parts (mean of last logged steps) |",
+        "|---|---|---|---|---|",
+    ]
+    for name, s in r["stages"].items():
+        final = dict(s["final"])
+        loss = final.pop("loss", None)
+        parts = ", ".join(f"{k} {_fmt(v, 3)}" for k, v in final.items() if k != "grad_norm")
+        md.append(
+            f"| {name} | {s['steps']} | {_fmt(s['samples_per_s'], 3)} | {_fmt(loss)} | {parts} |"
+        )
+    md += [
+        "",
+        f"## Held-out metrics ({src}: {m.get('windows', 0)} windows)",
+        "",
+        "| metric | value | baseline |",
+        "|---|---|---|",
+        f"| world model speed MAE (m/s, all H steps) | {_fmt(m.get('speed_mae_mps'))} | "
+        f"{_fmt(m.get('baseline_speed_mae_mps'))} (constant speed) |",
+        f"| speed MAE / baseline | {_fmt(m.get('speed_mae_over_baseline'), 3)} | < 1 beats it |",
+        f"| collision AUROC of p̂ ({m.get('collision_steps', 0)} collision steps) | "
+        f"{_fmt(m.get('collision_auroc'), 3)} | 0.5 (chance) |",
+        f"| imitation L1 of μ vs a* ({m.get('imitation_windows', 0)} collision-free windows) | "
+        f"{_fmt(m.get('imitation_l1'))} | — |",
+        f"| Spearman(u_speed, speed error) | {_fmt(m.get('spearman_u_speed_vs_error'), 3)} | 0 |",
+        f"| Spearman(u_image, image error) | {_fmt(m.get('spearman_u_image_vs_error'), 3)} | 0 |",
+        "",
+    ]
+    if m.get("speed_mae_per_step"):
+        ks = range(1, len(m["speed_mae_per_step"]) + 1)
+        md += [
+            "Speed MAE per step ahead (m/s):",
+            "",
+            "| | " + " | ".join(f"t+{k}" for k in ks) + " |",
+        ]
+        md.append("|---" * (len(ks) + 1) + "|")
+        md.append(
+            "| world model | " + " | ".join(_fmt(v, 3) for v in m["speed_mae_per_step"]) + " |"
+        )
+        md.append(
+            "| constant speed | "
+            + " | ".join(_fmt(v, 3) for v in m["baseline_mae_per_step"])
+            + " |"
+        )
+        md.append("")
+    if r["figures"]:
+        md += ["## Figures", ""]
+        md += [f"### {title}\n\n![{title}]({p})\n" for title, p in r["figures"].items()]
+    md += ["## Export", "", *[f"    {line}" for line in export_lines], ""]
+    md += ["## Config", "", "```json", json.dumps(_config(cfg), indent=2, default=str), "```", ""]
+    return "\n".join(md)
+
+
+def _finite(x):
+    """NaN/inf → null: metrics.json stays standard JSON for tools other than Python's."""
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    return x
+
+
+def _config(cfg) -> dict:
+    from dataclasses import asdict
+
+    return asdict(cfg)
