@@ -26,19 +26,10 @@ STAGES = ("imitation", "world_model", "refine")
 
 
 def record_episodes(root: Path) -> Path:
-    """Expert laps and crashes, as the tests' sim_episodes fixture records them."""
-    from e2e_rig import CliRun
-    from onnx_models import build_policy
+    """Expert laps and crashes, exactly as the tests' sim_episodes fixture records them."""
+    from e2e_rig import record_sim_dataset
 
-    out = root / "episodes"
-    expert = ["teleop", "--sim", "--expert", "auto", "--record", "--layout", "easy",
-              "--episodes", "3", "--laps", "1", "--out", str(out), "--duration", "600"]  # fmt: skip
-    assert CliRun(expert).result(timeout_s=300) == 0
-    crash = build_policy(root / "crash.onnx", steering=0.0, throttle=(0.8, 0.0))
-    crashes = ["drive", "--sim", "--autopilot", "--model", str(crash), "--record", "--layout",
-               "easy", "--episodes", "3", "--out", str(out), "--duration", "600"]  # fmt: skip
-    assert CliRun(crashes).result(timeout_s=300) == 0
-    return out
+    return record_sim_dataset(root)
 
 
 def _stage(name, cfg, policy, world_model, windows, free, norm):

@@ -20,22 +20,8 @@ import pytest  # noqa: E402
 
 @pytest.fixture(scope="session")
 def sim_episodes(tmp_path_factory):
-    """A small dataset recorded by the real stack in the simulator, once per test session.
+    """A small dataset recorded by the real stack in the simulator, once per test session
+    (see e2e_rig.record_sim_dataset). Returns the episodes directory."""
+    from e2e_rig import record_sim_dataset
 
-    Expert laps with the paper's noise (collision-free), plus episodes in which a policy that
-    steers wrongly crashes into the fence (collision labels), on the simulated clock: a few
-    seconds of wall time. Returns the episodes directory.
-    """
-    from e2e_rig import CliRun
-    from onnx_models import build_policy
-
-    root = tmp_path_factory.mktemp("sim-data")
-    out = root / "episodes"
-    expert = ["teleop", "--sim", "--expert", "auto", "--record", "--layout", "easy",
-              "--episodes", "3", "--laps", "1", "--out", str(out), "--duration", "600"]  # fmt: skip
-    assert CliRun(expert).result(timeout_s=300) == 0
-    crash = build_policy(root / "crash.onnx", steering=0.0, throttle=(0.8, 0.0))
-    crashes = ["drive", "--sim", "--autopilot", "--model", str(crash), "--record", "--layout",
-               "easy", "--episodes", "3", "--out", str(out), "--duration", "600"]  # fmt: skip
-    assert CliRun(crashes).result(timeout_s=300) == 0
-    return out
+    return record_sim_dataset(tmp_path_factory.mktemp("sim-data"))

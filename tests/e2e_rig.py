@@ -111,3 +111,23 @@ class CliRun:
         if self.error is not None:
             raise self.error
         return self.code
+
+
+def record_sim_dataset(root: Path) -> Path:
+    """Record a small dataset with the real stack in the simulator; return the episodes dir.
+
+    Expert laps with the paper's noise (collision-free), plus episodes in which a policy that
+    steers wrongly crashes into the fence (collision labels), on the simulated clock: a few
+    seconds of wall time. Used by the tests' sim_episodes fixture and the training benchmark.
+    """
+    from onnx_models import build_policy
+
+    out = root / "episodes"
+    expert = ["teleop", "--sim", "--expert", "auto", "--record", "--layout", "easy",
+              "--episodes", "3", "--laps", "1", "--out", str(out), "--duration", "600"]  # fmt: skip
+    assert CliRun(expert).result(timeout_s=300) == 0
+    crash = build_policy(root / "crash.onnx", steering=0.0, throttle=(0.8, 0.0))
+    crashes = ["drive", "--sim", "--autopilot", "--model", str(crash), "--record", "--layout",
+               "easy", "--episodes", "3", "--out", str(out), "--duration", "600"]  # fmt: skip
+    assert CliRun(crashes).result(timeout_s=300) == 0
+    return out

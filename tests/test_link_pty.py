@@ -7,24 +7,19 @@ bench/.
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 
 import pytest
+from e2e_rig import wait_for as rig_wait_for
 
 from firmware_bridge import messages as m
 from firmware_bridge.link import ArmRefused, BoardLink, ProtocolMismatch
 from firmware_bridge.virtual import VirtualBoard
 
-
-def wait_for(predicate, timeout_s=2.0, interval_s=0.001):
-    """Poll until predicate() is true; return the seconds it took (fails the test on timeout)."""
-    start = time.monotonic()
-    while not predicate():
-        if time.monotonic() - start > timeout_s:
-            raise AssertionError(f"condition not met within {timeout_s} s")
-        time.sleep(interval_s)
-    return time.monotonic() - start
+# The link tests keep their own tighter defaults: 2 s, polled every millisecond.
+wait_for = functools.partial(rig_wait_for, timeout_s=2.0, interval_s=0.001)
 
 
 @pytest.fixture
