@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-from e2e_rig import PAD_SETTINGS, CliRun, SyntheticPad, wait_for, write_video
+from e2e_rig import PAD_SETTINGS, CliRun, SyntheticPad, clear_and_rearm, wait_for, write_video
 from onnx_models import build_policy
 
 from firmware_bridge import messages as m
@@ -91,13 +91,7 @@ def estop_latency(tmp: Path, trials: int = 10) -> dict:
                 time.sleep(0.0002)
             latencies.append(time.perf_counter() - posted)
             pad.sticks(0.0, 0.0)
-            time.sleep(0.3)
-            pad.press("clear")
-            wait_for(lambda: board.state == m.State.DISARMED, timeout_s=3.0)
-            wait_for(lambda: board.plant.speed_mps == 0.0)
-            time.sleep(0.3)
-            pad.press("arm")
-            wait_for(lambda: board.state == m.State.ARMED, timeout_s=3.0)
+            clear_and_rearm(pad, board, pause_s=0.3)
         run.result(timeout_s=60)
     latencies.sort()
     p50 = statistics.median(latencies)

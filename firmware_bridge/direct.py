@@ -66,11 +66,7 @@ class DirectBoardLink(BoardLink):
         return self
 
     def close(self) -> None:
-        with self._state_lock:
-            self._want_arm = False
-            self._steering = self._throttle = 0
-        if self._connected.is_set():
-            self._write_command()
+        self._leave_disarmed(frames=1)  # no wire to lose it on
         self._running = False
         self._connected.clear()
         self._ser = None

@@ -173,14 +173,18 @@ class BoardLink:
             self._threads.append(thread)
         return self
 
-    def close(self) -> None:
-        """Leave the board disarmed (neutral outputs), stop the threads, release the port."""
+    def _leave_disarmed(self, frames: int) -> None:
+        """Drop the arm request, command neutral, and put that on the wire `frames` times."""
         with self._state_lock:
             self._want_arm = False
             self._steering = self._throttle = 0
         if self._connected.is_set():
-            for _ in range(3):
+            for _ in range(frames):
                 self._write_command()
+
+    def close(self) -> None:
+        """Leave the board disarmed (neutral outputs), stop the threads, release the port."""
+        self._leave_disarmed(frames=3)  # a few, in case one is lost on a noisy line
         self._running = False
         for thread in self._threads:
             thread.join(timeout=1.0)

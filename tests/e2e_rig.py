@@ -87,6 +87,17 @@ class SyntheticPad:
         self.sticks(0.0, 0.0)
 
 
+def clear_and_rearm(pad: SyntheticPad, board, pause_s: float) -> None:
+    """After an e-stop with the sticks centred: clear, let the car stop, then arm again."""
+    time.sleep(pause_s)  # the loop sees the neutral sticks
+    pad.press("clear")
+    wait_for(lambda: board.state.name == "DISARMED", timeout_s=3.0)
+    wait_for(lambda: board.plant.speed_mps == 0.0)
+    time.sleep(pause_s)
+    pad.press("arm")
+    wait_for(lambda: board.state.name == "ARMED", timeout_s=3.0)
+
+
 class CliRun:
     """`carrt ARGS` on a background thread; `result()` joins it and returns the exit code."""
 

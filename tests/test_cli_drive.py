@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 import pytest
-from e2e_rig import PAD_SETTINGS, CliRun, SyntheticPad, wait_for, write_video
+from e2e_rig import PAD_SETTINGS, CliRun, SyntheticPad, clear_and_rearm, wait_for, write_video
 from onnx_models import build_policy
 
 from carrt.episodes.reader import list_episodes, read_episode
@@ -207,11 +207,5 @@ def test_estop_button_beats_the_loop_tick(tmp_path, board, video):
         assert time.monotonic() - posted < 0.05, f"trial {trial}: e-stop waited for a loop tick"
         pad.sticks(0.0, 0.0)
         if trial < 2:
-            time.sleep(0.5)  # the loop sees the neutral sticks
-            pad.press("clear")
-            wait_for(lambda: board.state == m.State.DISARMED, timeout_s=3.0)
-            wait_for(lambda: board.plant.speed_mps == 0.0)
-            time.sleep(0.5)
-            pad.press("arm")
-            wait_for(lambda: board.state == m.State.ARMED, timeout_s=3.0)
+            clear_and_rearm(pad, board, pause_s=0.5)
     assert run.result() == 0
