@@ -39,6 +39,14 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         choices=("auto",),
         help="with --sim: the scripted expert drives instead of a person",
     )
+    teleop.add_argument(
+        "--expert-noise",
+        type=_non_negative,
+        default=0.0,
+        metavar="SIGMA",
+        help="with --expert: add Gaussian noise of this σ to every expert command (the paper's "
+        "imperfect demonstrations: 0.5, 1.0)",
+    )
     teleop.set_defaults(func=run_teleop)
     drive = subparsers.add_parser(
         "drive", help="let a policy drive; the joystick overrides and e-stops"
@@ -51,6 +59,16 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     _common_arguments(drive)
     drive.set_defaults(func=run_drive)
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return value
 
 
 def _common_arguments(parser: argparse.ArgumentParser) -> None:
@@ -77,6 +95,11 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
     sim.add_argument("--episodes", type=int, help="stop after this many episodes")
     sim.add_argument("--laps", type=int, help="end an episode after this many laps")
     sim.add_argument("--plot", help="write the run's top-down trajectory plot here (PNG)")
+    sim.add_argument(
+        "--random-start",
+        action="store_true",
+        help="with --expert/--autopilot: start every episode at a random place on the track",
+    )
     sim.add_argument(
         "--pad", action="store_true", help="drive the simulator with a joystick (default: keyboard)"
     )

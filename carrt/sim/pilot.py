@@ -13,6 +13,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numpy as np
+
 from carrt.interfaces import JoystickEvents, JoystickState, Mode
 
 SETTLE_S = 0.5  # wait after a reset or a clear before the next press, as a person would
@@ -35,6 +37,9 @@ class SimPilot:
         engage_auto: bool = False,
         episodes: int | None = None,
         laps_per_episode: int | None = None,
+        random_start: bool = False,
+        expert_noise: float = 0.0,
+        seed: int = 0,
     ) -> None:
         self.plant = plant
         self.clock = clock
@@ -49,6 +54,10 @@ class SimPilot:
         self._laps_at_arm = 0
         self._last_laps = 0
         self._stopping = False
+        self.random_start = random_start
+        self.expert_noise = float(expert_noise)
+        self._rng = np.random.default_rng(seed)
+        self._placed = False
 
     # Joystick interface ------------------------------------------------------------
     def start(self, on_estop: Callable[[], None]) -> None:
@@ -70,7 +79,7 @@ class SimPilot:
             self._last_laps = laps
             sticks = (0.0, 0.0)
             if mode == Mode.MANUAL and self.expert is not None and not self.engage_auto:
-                sticks = self.expert.act(state)
+                sticks = self._imperfect(self.expert.act(state))
                 if self._stopping:  # the episode is done: steer on, brake to a standstill
                     sticks = (sticks[0], -0.6 if state.v > 0.05 else 0.0)
         events = self._decide(mode, now, laps)
@@ -85,8 +94,29 @@ class SimPilot:
         )
 
     # The person's decisions ----------------------------------------------------------
+    def _imperfect(self, sticks: tuple[float, float]) -> tuple[float, float]:
+        """The paper's robustness setting: a demonstrator whose every command carries Gaussian
+        noise of σ expert_noise. Unlike the loop's noise injection (which the human corrects
+        and which the episode keeps apart from a*), this noise IS the demonstration."""
+        if self.expert_noise <= 0:
+            return sticks
+        noisy = np.clip(np.asarray(sticks) + self._rng.normal(0.0, self.expert_noise, 2), -1, 1)
+        return float(noisy[0]), float(noisy[1])
+
+    def _place_randomly(self) -> None:
+        """Carry the resting car to a random clear place on the track, facing the racing
+        direction: the expert then also shows how to start from rest anywhere, which the
+        policy needs after every auto-reset (a start line only is a narrow demonstration)."""
+        world = self.plant.world
+        with self.plant.lock:
+            s = float(self._rng.uniform(0.0, world.track.length))
+            world.reset(world.clear_place_before(s))
+        self._placed = True
+
     def _on_mode_change(self, old: Mode, new: Mode, now: float) -> None:
         self._mode, self._since = new, now
+        if new != Mode.DISARMED:
+            self._placed = False
         if new in (Mode.MANUAL, Mode.AUTO) and old == Mode.DISARMED:
             self._laps_at_arm = self._last_laps
         if new == Mode.ESTOP:
@@ -102,7 +132,12 @@ class SimPilot:
             return JoystickEvents(quit=True)
         waited = now - self._since >= SETTLE_S
         if mode == Mode.DISARMED:
-            return JoystickEvents(arm=waited and abs(self.plant.world.car.v) < 0.01)
+            still = abs(self.plant.world.car.v) < 0.01
+            if self.random_start and not self._placed and still:
+                self._place_randomly()
+                self._since = now
+                return JoystickEvents()
+            return JoystickEvents(arm=waited and still)
         if mode == Mode.ESTOP:
             return JoystickEvents(clear=waited)
         driving_laps = laps - self._laps_at_arm

@@ -92,6 +92,9 @@ def open_sim_rig(
             engage_auto=driving,
             episodes=args.episodes,
             laps_per_episode=args.laps,
+            random_start=getattr(args, "random_start", False),
+            expert_noise=getattr(args, "expert_noise", 0.0) or 0.0,
+            seed=args.seed,
         )
         joystick: Any = pilot
     elif getattr(args, "pad", False):

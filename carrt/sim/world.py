@@ -112,13 +112,17 @@ class SimWorld:
         Laps, time and the odometer carry on (the paper's reset is a pause, not a new run).
         """
         if s is None:
-            s = self.last_safe_s - RESET_BACK
-            for _ in range(40):  # a bucket right behind the crash site: keep backing off
-                if self._clearance_at(s) >= RESET_CLEARANCE:
-                    break
-                s -= 0.1
+            s = self.clear_place_before(self.last_safe_s - RESET_BACK)
         self.resets += 1
         self._place(float(s))
+
+    def clear_place_before(self, s: float) -> float:
+        """The first arc position at or behind s where a car at rest clears every obstacle."""
+        for _ in range(40):  # a bucket right behind the crash site: keep backing off
+            if self._clearance_at(s) >= RESET_CLEARANCE:
+                break
+            s -= 0.1
+        return s
 
     # -- internals -------------------------------------------------------------------------
 
