@@ -359,8 +359,11 @@ def main(argv: list[str] | None = None) -> int:
     (out / "table.md").write_text(report + "\n")
     plot(rows, out / "completion_vs_frames.png")
     print("\n" + report)
-    print(f"\nwritten: {out / 'results.json'}, {out / 'table.md'}, "
-          f"{out / 'completion_vs_frames.png'} ({(time.monotonic() - started) / 60:.1f} min)")  # fmt: skip
+    minutes = (time.monotonic() - started) / 60
+    written = ", ".join(
+        str(out / n) for n in ("results.json", "table.md", "completion_vs_frames.png")
+    )
+    print(f"\nwritten: {written} ({minutes:.1f} min)")
     return 0
 
 

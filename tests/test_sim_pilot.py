@@ -1,4 +1,4 @@
-"""The simulated person: random starting places and the imperfect demonstrator (the study's data)."""
+"""The simulated person: random starting places and the imperfect demonstrator (study data)."""
 
 from __future__ import annotations
 
