@@ -5,7 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench lint format clean firmware-avr
+.PHONY: demo test bench study demo-policy lint format clean firmware-avr
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,15 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m bench
+
+# The paper's simulation study, IL against DIRL (about 1.5 h on 2 cores; results in
+# bench/results/dirl_sim/). `$(PY) -m bench.dirl_sim --quick` runs the pipeline in minutes.
+study: $(STAMP)
+	$(PY) -m bench.dirl_sim
+
+# Reproduce carrt/assets/demo_policy.onnx, the policy `make demo` drives with.
+demo-policy: $(STAMP)
+	$(PY) training/demo_policy.py
 
 lint: $(STAMP)
 	$(PY) -m ruff check --fix .

@@ -55,7 +55,7 @@ class StudyConfig:
     iterations: int = 2  # DIRL iterations (seed chains at σ = 0)
     robustness_iterations: int = 1  # DIRL iterations for σ > 0 (first seed only)
     drive_episodes: int = 2  # per training placement per DIRL iteration (a crash ends one)
-    imitation_steps: int = 800
+    imitation_steps: int = 1200
     world_model_steps: int = 1200  # iteration 1 (from scratch)
     world_model_steps_next: int = 500  # later iterations continue the previous world model
     refine_steps: int = 200

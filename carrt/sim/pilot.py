@@ -53,7 +53,7 @@ class SimPilot:
         self._since = clock.now()
         self._laps_at_arm = 0
         self._last_laps = 0
-        self._stopping = False
+        self._pick_up = False
         self.random_start = random_start
         self.expert_noise = float(expert_noise)
         self._rng = np.random.default_rng(seed)
@@ -80,8 +80,6 @@ class SimPilot:
             sticks = (0.0, 0.0)
             if mode == Mode.MANUAL and self.expert is not None and not self.engage_auto:
                 sticks = self._imperfect(self.expert.act(state))
-                if self._stopping:  # the episode is done: steer on, brake to a standstill
-                    sticks = (sticks[0], -0.6 if state.v > 0.05 else 0.0)
         events = self._decide(mode, now, laps)
         if new_lap:
             events = replace(events, lap=True)
@@ -119,8 +117,12 @@ class SimPilot:
             self._placed = False
         if new in (Mode.MANUAL, Mode.AUTO) and old == Mode.DISARMED:
             self._laps_at_arm = self._last_laps
-        if new == Mode.ESTOP:
-            self._stopping = False
+        if new == Mode.DISARMED and self._pick_up:
+            # The episode ended at the line: the person lifts the car off and sets it down at
+            # rest. Braking to a stop inside the episode would teach a policy to stop there.
+            self._pick_up = False
+            with self.plant.lock:
+                self.plant.reset(self.plant.world.s)
         if new == Mode.ESTOP:
             self.log.episodes += 1
             if self.plant.world.collided:
@@ -142,9 +144,7 @@ class SimPilot:
             return JoystickEvents(clear=waited)
         driving_laps = laps - self._laps_at_arm
         if self.laps_per_episode is not None and driving_laps >= self.laps_per_episode:
-            self._stopping = True  # a person stops the car before disarming; it would coast
-        if self._stopping and (mode == Mode.AUTO or abs(self.plant.world.car.v) <= 0.05):
-            self._stopping = False
+            self._pick_up = True
             self.log.episodes += 1
             self.log.laps += driving_laps
             self._laps_at_arm = laps

@@ -60,10 +60,11 @@ class SimPlant:
             self._collisions_reported = self._collisions
             return new
 
-    def reset(self) -> None:
-        """Put the car back on the track after a collision (the paper's auto-reset)."""
+    def reset(self, s: float | None = None) -> None:
+        """Put the car back on the track at rest: after a collision (the paper's auto-reset),
+        or at arc position s."""
         with self.lock:
-            self.world.reset()
+            self.world.reset(s)
             self._was_collided = False
 
     def pose(self) -> tuple[float, float, float]:
