@@ -1,15 +1,19 @@
 """`make demo`: carrt end to end on a laptop, no car needed, narrated.
 
-Part 1: the built-in simulator driven through the full control loop (arbitration, the C
-firmware core, the renderer, the episode writer) by the scripted expert on the simulated clock:
-the paper's metrics, the recorded episode, a video and a trajectory plot in demo-out/.
+Part 1: the built-in simulator driven by the policy this project trained (carrt/assets,
+reproduced by `python training/demo_policy.py`), in real time through the full stack: the
+10 Hz loop and arbitration, the C firmware core behind a pty with the real serial link, the
+simulated camera on its own thread, the episode writer. It drives obstacle placements it never
+saw in training; after a collision the car is reset and re-armed, as in the paper. The paper's
+metrics are printed; the episodes, a video and a trajectory plot land in demo-out/.
 Part 2: the safety link on the virtual board behind a real pty: e-stop, a hung control loop
 and a pulled cable, and how the board stops the car each time.
-A policy trained by this project replaces the expert in part 1 once training lands.
 """
 
 from __future__ import annotations
 
+import argparse
+import shutil
 import time
 from pathlib import Path
 
@@ -41,30 +45,46 @@ def _say(text: str) -> None:
     print(text, flush=True)
 
 
-def simulator_part(out: Path) -> None:
+DEMO_POLICY = Path(__file__).resolve().parent / "assets" / "demo_policy.onnx"
+HELD_OUT_TRACK = 101  # obstacle placement never used for the shipped policy's training data
+
+
+def simulator_part(out: Path, seconds: float, model: Path = DEMO_POLICY) -> None:
     from carrt.cli import main as carrt
-    from carrt.episodes.reader import list_episodes
+    from carrt.episodes.reader import iter_episodes
 
     episodes = out / "episodes"
-    _say("== the simulator: the scripted expert drives 3 laps of the 'hard' layout (8 obstacles)")
-    _say("   through the real loop on the simulated clock, recording (with the paper's noise)\n")
+    if episodes.is_dir():  # the demo's own output from a previous run: report this run only
+        shutil.rmtree(episodes)
+    who = "the shipped policy (trained by this project)" if model == DEMO_POLICY else str(model)
+    _say(f"== the simulator: {who} drives")
+    _say(f"   the 'hard' layout (8 obstacles, placement {HELD_OUT_TRACK}, not in its training")
+    _say(f"   data) for {seconds:.0f} s in real time through the loop, the C core behind a pty")
+    _say("   and the simulated camera, recording; a collision e-stops, resets and re-arms\n")
     code = carrt(
-        ["teleop", "--sim", "--expert", "auto", "--record", "--layout", "hard", "--episodes", "1",
-         "--laps", "3", "--out", str(episodes), "--duration", "300",
-         "--plot", str(out / "trajectory.png")]
+        ["drive", "--sim", "--autopilot", "--realtime", "--model", str(model), "--record",
+         "--layout", "hard", "--track-seed", str(HELD_OUT_TRACK), "--duration", str(seconds),
+         "--out", str(episodes), "--plot", str(out / "trajectory.png")]
     )  # fmt: skip
     if code != 0:
         raise SystemExit(code)
-    (episode,) = list_episodes(episodes)
-    carrt(["episodes", "video", str(episode), "-o", str(out / "run.mp4")])
+    longest = max(iter_episodes(episodes), key=lambda ep: ep.n)
+    carrt(["episodes", "video", str(longest.path), "-o", str(out / "run.mp4")])
     carrt(["report", str(episodes)])
-    _say(f"\nwritten: {episode}, {out / 'run.mp4'}, {out / 'trajectory.png'}\n")
+    _say(f"\nwritten: {episodes}/, {out / 'run.mp4'} ({longest.name}), {out / 'trajectory.png'}\n")
 
 
-def main() -> int:
-    out = Path("demo-out")
-    out.mkdir(exist_ok=True)
-    simulator_part(out)
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m carrt.demo", description=__doc__.split("\n")[0]
+    )
+    parser.add_argument("--out", default="demo-out", help="output directory (default demo-out)")
+    parser.add_argument("--seconds", type=float, default=40.0, help="simulator driving time")
+    parser.add_argument("--model", default=str(DEMO_POLICY), help="policy to show (default: ours)")
+    args = parser.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    simulator_part(out, args.seconds, Path(args.model))
     _say("== the safety link: the C firmware core behind a pty, the real host link\n")
     with VirtualBoard() as board, BoardLink(board.port) as link:
         _say(f"virtual board on {board.port} (C firmware core behind a pty)\n")
@@ -135,7 +155,7 @@ def main() -> int:
             f"{c.estops_sent} e-stop, {c.disconnects} disconnect, {c.reconnects} reconnect, "
             f"host drops {c.bad_crc + c.bad_length + c.overruns}"
         )
-    _say("demo finished: outputs in demo-out/")
+    _say(f"demo finished: outputs in {out}/")
     return 0
 
 
