@@ -189,6 +189,52 @@ def evaluate(cfg: StudyConfig, step: Step, name: str, model: Path) -> dict:
     }
 
 
+def action_sensitivity(run: Path, start_policy: Path, data: Path, shift: float = 0.3) -> dict:
+    """What `run`'s world model imagines when the start policy's steering is moved by ±shift.
+
+    Refinement can only improve on imitation where the world model's speed, collision and
+    uncertainty depend on the actions the right way round; this probe says whether they do.
+    Returns per quantity the mean over up to 64 expert windows at (−shift, 0, +shift).
+    """
+    import torch
+
+    from training import checkpoint as ck
+    from training.data import Normalisation, WindowDataset, load_episodes
+    from training.models import PolicyNet, WorldModel
+    from training.profiles import get_profile
+    from training.refine import imagine
+    from training.world_training import Targets
+
+    c = ck.load_checkpoint(run / "world_model.pt")
+    profile, norm = get_profile(c["profile"]), Normalisation.from_dict(c["normalisation"])
+    world_model = WorldModel(profile)
+    world_model.set_normalisation(norm)
+    world_model.load_state_dict(c["world_model"])
+    world_model.freeze()
+    policy = PolicyNet(profile)
+    policy.set_normalisation(norm)
+    policy.load_state_dict(ck.load_checkpoint(start_policy)["policy"])
+    policy.eval()
+    episodes = load_episodes([str(data)])
+    windows = WindowDataset(episodes, profile.horizon, predict_size=profile.predict_size)
+    picks = range(0, len(windows), max(1, len(windows) // 64))
+    batch = torch.utils.data.default_collate([windows[i] for i in list(picks)[:64]])
+    out: dict[str, list[float]] = {"speed": [], "p_collision": [], "uncertainty": []}
+    with torch.no_grad():
+        mu, _ = policy(batch["image"], batch["speed"])
+        for delta in (-shift, 0.0, shift):
+            actions = mu.clone()
+            actions[..., 0] = (actions[..., 0] + delta).clamp(-1.0, 1.0)
+            seen = imagine(
+                world_model, Targets(norm), batch["image"], batch["speed"], actions, 10.0
+            )
+            out["speed"].append(float(seen["speed"].mean()))
+            out["p_collision"].append(float(seen["p_collision"].mean()))
+            u = seen["u_image"] + seen["u_speed"] + seen["u_collision"]
+            out["uncertainty"].append(float(u.mean()))
+    return out
+
+
 def _mean(values: list[float]) -> float:
     return float(sum(values) / len(values)) if values else 0.0
 
@@ -231,6 +277,7 @@ def chain(cfg: StudyConfig, sigma: float, seed: int, iterations: int, ablation: 
             "--set", f"world_model_steps={wm_steps}", "--set", f"refine_steps={cfg.refine_steps}",
         ))  # fmt: skip
         row(f"DIRL iter {k}", k, run, data)
+        rows[-1]["sensitivity"] = action_sensitivity(run, il / "policy.pt", expert)
         if k == 1 and ablation:
             # The same world model, the same start policy: only the uncertainty term differs.
             unc = train(cfg, step, f"train-{tag}-unc1", runs / "unc1", iterate_cmd(
@@ -273,6 +320,26 @@ def table(rows: list[dict]) -> str:
             f"| {cell([r['completion_ratio'] for r in rs], '.2f')} "
             f"| {cell([r['lap_time'] for r in rs], '.2f')} "
             f"| {cell([r['collisions_per_min'] for r in rs], '.1f')} |"
+        )
+    return "\n".join(lines)
+
+
+def sensitivity_table(rows: list[dict]) -> str:
+    """The world models' answers to the steering probe (action_sensitivity), one row each."""
+    lines = [
+        "| demo noise σ | model | seed | imagined speed (m/s) at steering −0.3 / IL / +0.3 "
+        "| p(collision) | uncertainty u_i+u_s+u_c |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        s = r.get("sensitivity")
+        if not s:
+            continue
+        cells = [
+            " / ".join(f"{v:.3f}" for v in s[k]) for k in ("speed", "p_collision", "uncertainty")
+        ]
+        lines.append(
+            f"| {r['demo_noise']:g} | {r['model']} | {r['seed']} | " + " | ".join(cells) + " |"
         )
     return "\n".join(lines)
 
@@ -352,7 +419,9 @@ def main(argv: list[str] | None = None) -> int:
         results = list(pool.map(lambda j: chain(cfg, *j), jobs))
     rows = [r for rs in results for r in rs]
 
-    report = table(rows)
+    report = (
+        table(rows) + "\n\nSteering probe of each DIRL world model:\n\n" + sensitivity_table(rows)
+    )
     (out / "results.json").write_text(json.dumps(
         {"config": dataclasses.asdict(cfg), "rows": rows,
          "wall_s": time.monotonic() - started}, indent=2) + "\n")  # fmt: skip

@@ -49,3 +49,14 @@ def test_plot_writes_completion_against_frames(tmp_path):
             _row("DIRL -unc iter 1", 0, 0.1, frames=1500, iteration=1)]  # fmt: skip
     dirl_sim.plot(rows, tmp_path / "c.png")
     assert (tmp_path / "c.png").stat().st_size > 5000
+
+
+def test_sensitivity_table_lists_each_probed_world_model():
+    probed = _row("DIRL iter 1", 0, 0.3, iteration=1)
+    probed["sensitivity"] = {
+        "speed": [1.86, 1.85, 1.81], "p_collision": [0.05, 0.05, 0.05],
+        "uncertainty": [0.53, 0.53, 0.54],
+    }  # fmt: skip
+    lines = dirl_sim.sensitivity_table([_row("IL", 0, 0.2), probed]).splitlines()
+    assert len(lines) == 3, "the IL row has no world model to probe"
+    assert "1.860 / 1.850 / 1.810" in lines[2] and "| DIRL iter 1 | 0 |" in lines[2]
