@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import random
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -78,7 +79,9 @@ def open_sim_rig(
         link = DirectBoardLink(plant, clock).open()
         where = "on the simulated clock"
     stack.callback(link.close)
-    camera = SimCamera(plant, Renderer(world.track), clock, realtime=realtime)
+    # The camera's phase against the loop's ticks is arbitrary on a real car: draw it per run.
+    phase = random.Random(args.seed).uniform(0.0, 1.0 / 30.0)
+    camera = SimCamera(plant, Renderer(world.track), clock, realtime=realtime, phase_s=phase)
     camera.start()
     stack.callback(camera.stop)
 
