@@ -25,7 +25,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m bench
 
-# The paper's simulation study, IL against DIRL (about 1.5 h on 2 cores; results in
+# The paper's simulation study, IL against DIRL (about 45 min on 2 cores; results in
 # bench/results/dirl_sim/). `$(PY) -m bench.dirl_sim --quick` runs the pipeline in minutes.
 study: $(STAMP)
 	$(PY) -m bench.dirl_sim
