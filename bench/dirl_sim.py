@@ -1,6 +1,6 @@
 """The paper's simulation study on carrt's simulator: imitation learning against DIRL.
 
-    python -m bench.dirl_sim                       # the cpu-profile study (about an hour here)
+    python -m bench.dirl_sim                       # the cpu-profile study (about 45 min on 2 cores)
     python -m bench.dirl_sim --quick               # the whole pipeline in minutes (tiny profile)
     python -m bench.dirl_sim --set seeds=0,1,2 --set iterations=3
 
