@@ -116,23 +116,25 @@ def count_frames(dirs: list[Path]) -> int:
 
 
 # ------------------------------------------------------------------------------- the steps
+def record_per_track(cfg: StudyConfig, step: Step, name: str, data: Path, argv_for) -> None:
+    """One recording command per training placement into `data`, with a marker per finished
+    placement, so a rerun records only the placements it had not finished."""
+    for track in cfg.train_tracks:
+        done = data / f".done-{track}"
+        if not done.exists():
+            step(f"{name}-track{track}", argv_for(track))
+            done.touch()
+
+
 def demonstrations(cfg: StudyConfig, step: Step, sigma: float) -> Path:
     """Expert episodes on every training placement; σ > 0: the imperfect demonstrator."""
     data = Path(cfg.out) / "data" / f"expert-noise{sigma:g}"
-    for track in cfg.train_tracks:
-        done = data / f".done-{track}"
-        if done.exists():
-            continue
-        step(
-            f"expert-noise{sigma:g}-track{track}",
-            carrt_cmd(
-                "teleop", "--sim", "--expert", "auto", "--record", "--random-start",
-                "--expert-noise", str(sigma), "--seed", str(track), "--layout", cfg.layout,
-                "--track-seed", str(track), "--episodes", str(cfg.expert_episodes),
-                "--laps", "1", "--out", str(data), "--duration", "100000",
-            ),
-        )  # fmt: skip
-        done.touch()
+    record_per_track(cfg, step, f"expert-noise{sigma:g}", data, lambda track: carrt_cmd(
+        "teleop", "--sim", "--expert", "auto", "--record", "--random-start",
+        "--expert-noise", str(sigma), "--seed", str(track), "--layout", cfg.layout,
+        "--track-seed", str(track), "--episodes", str(cfg.expert_episodes),
+        "--laps", "1", "--out", str(data), "--duration", "100000",
+    ))  # fmt: skip
     return data
 
 
@@ -144,20 +146,12 @@ def train(cfg: StudyConfig, step: Step, name: str, run: Path, argv: list[str]) -
 
 def drive_episodes(cfg: StudyConfig, step: Step, name: str, model: Path, data: Path, seed: int):
     """The current policy drives the training placements, crashes and resets recorded."""
-    for track in cfg.train_tracks:
-        done = data / f".done-{track}"
-        if done.exists():
-            continue
-        step(
-            f"{name}-track{track}",
-            carrt_cmd(
-                "drive", "--sim", "--autopilot", "--model", str(model), "--record",
-                "--random-start", "--seed", str(seed * 1000 + track), "--layout", cfg.layout,
-                "--track-seed", str(track), "--episodes", str(cfg.drive_episodes), "--laps", "1",
-                "--out", str(data), "--duration", "100000",
-            ),
-        )  # fmt: skip
-        done.touch()
+    record_per_track(cfg, step, name, data, lambda track: carrt_cmd(
+        "drive", "--sim", "--autopilot", "--model", str(model), "--record",
+        "--random-start", "--seed", str(seed * 1000 + track), "--layout", cfg.layout,
+        "--track-seed", str(track), "--episodes", str(cfg.drive_episodes), "--laps", "1",
+        "--out", str(data), "--duration", "100000",
+    ))  # fmt: skip
 
 
 def evaluate(cfg: StudyConfig, step: Step, name: str, model: Path) -> dict:

@@ -106,9 +106,8 @@ class SimPilot:
         direction: the expert then also shows how to start from rest anywhere, which the
         policy needs after every auto-reset (a start line only is a narrow demonstration)."""
         world = self.plant.world
-        with self.plant.lock:
-            s = float(self._rng.uniform(0.0, world.track.length))
-            world.reset(world.clear_place_before(s))
+        s = float(self._rng.uniform(0.0, world.track.length))
+        self.plant.reset(world.clear_place_before(s))
         self._placed = True
 
     def _on_mode_change(self, old: Mode, new: Mode, now: float) -> None:
@@ -121,7 +120,7 @@ class SimPilot:
             # The episode ended at the line: the person lifts the car off and sets it down at
             # rest. Braking to a stop inside the episode would teach a policy to stop there.
             self._pick_up = False
-            with self.plant.lock:
+            with self.plant.lock:  # where it is now, not a physics step later
                 self.plant.reset(self.plant.world.s)
         if new == Mode.ESTOP:
             self.log.episodes += 1

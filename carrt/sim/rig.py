@@ -96,7 +96,7 @@ def open_sim_rig(
             episodes=args.episodes,
             laps_per_episode=args.laps,
             random_start=getattr(args, "random_start", False),
-            expert_noise=getattr(args, "expert_noise", 0.0) or 0.0,
+            expert_noise=getattr(args, "expert_noise", 0.0),
             seed=args.seed,
         )
         joystick: Any = pilot
