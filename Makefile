@@ -4,23 +4,48 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# The car's Python (JetPack 6): the runtime suite also runs under it, in a venv without torch.
+PYTHON310 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.10.*/bin/python3.10) python3.10)
+VENV310 ?= .venv310
+PY310 := $(VENV310)/bin/python
+STAMP310 := $(VENV310)/.installed
+# The firmware core is compiled into the package (setup.py); a checkout rebuilds it in place when
+# a C file changes, for every venv that uses this tree.
+FW_SOURCES := $(wildcard firmware_bridge/firmware/carrt_fw/src/*.[ch] firmware_bridge/firmware/host/*.c) \
+	firmware_bridge/core_sources.py setup.py
 
-.PHONY: demo test bench study demo-policy lint format clean firmware-avr
+.PHONY: demo test test-py310 bench study demo-policy lint format clean firmware-avr core
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[dev,train]'
+	$(PY) -m pip install --quiet -e '.[laptop,dev,train]'
 	touch $(STAMP)
 
-demo: $(STAMP)
+$(STAMP310): pyproject.toml setup.py
+	$(PYTHON310) -m venv $(VENV310)
+	$(PY310) -m pip install --quiet --upgrade pip
+	$(PY310) -m pip install --quiet -e '.[laptop,dev]'
+	touch $(STAMP310)
+
+# Rebuild the in-place firmware core library after a C change (no-op when it is current).
+core: $(STAMP)
+	$(PY) setup.py --quiet build_ext --inplace
+	@if [ -x $(PY310) ]; then $(PY310) setup.py --quiet build_ext --inplace; fi
+
+demo: $(STAMP) core
 	$(PY) -m carrt.demo
 
-test: $(STAMP)
+# The whole suite under 3.11 (with torch), then the runtime suite under 3.10 (without).
+test: $(STAMP) core
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
 	$(PY) -m pytest -q
+	$(MAKE) test-py310
+
+test-py310: $(STAMP310) core
+	$(PY310) -m pytest -q --runtime-only -m "not install" -p no:cacheprovider
 
 bench: $(STAMP)
 	$(PY) -m bench
@@ -39,7 +64,8 @@ lint: $(STAMP)
 	$(PY) -m ruff format .
 
 clean:
-	rm -rf $(VENV) build firmware_bridge/_build .pytest_cache .hypothesis
+	rm -rf $(VENV) $(VENV310) build firmware_bridge/_build firmware_bridge/_fw_core*.so \
+		.pytest_cache .hypothesis
 
 # Cross-compile the firmware core for an ATmega328P (Uno/Nano) with the same warnings as the
 # host build, plus -Wconversion, to catch 16-bit-int mistakes. Needs avr-gcc

@@ -13,9 +13,11 @@ import importlib
 import sys
 
 from carrt import __version__
+from carrt.deps import missing_package_message
 from carrt.errors import EXIT_USAGE, UserError
 from carrt.model_contract import ContractError
 from firmware_bridge.link import LinkError
+from firmware_bridge.native import FirmwareBuildError
 
 # module: function that registers its sub-command(s)
 COMMANDS = (
@@ -44,8 +46,14 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (UserError, LinkError, ContractError) as exc:
+    except (UserError, LinkError, ContractError, FirmwareBuildError) as exc:
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        print(f"carrt {args.command}: error: {message}", file=sys.stderr)
+        return EXIT_USAGE
+    except ModuleNotFoundError as exc:
+        message = missing_package_message(exc)
+        if message is None:
+            raise
         print(f"carrt {args.command}: error: {message}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

@@ -10,13 +10,17 @@ must not silently leave the car at full throttle.
 from __future__ import annotations
 
 import dataclasses
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import tomllib
-
 from carrt.errors import UserError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # Python 3.10 (JetPack 6): the same parser, published as tomli before it joined stdlib
+    import tomli as tomllib
 
 
 def opt(default: Any, doc: str, *, lo: float | None = None, hi: float | None = None,

@@ -29,7 +29,7 @@ from carrt.camera import preprocess
 from carrt.config import CarConfig
 from carrt.interfaces import Camera, Clock, EpisodeSink, Joystick, Mode, Policy, Step
 from carrt.noise import NoiseInjector
-from carrt.policy import PlanBuffer
+from carrt.plan import PlanBuffer
 from carrt.speed import SpeedEstimator
 from firmware_bridge import messages as m
 from firmware_bridge.link import BoardLink

@@ -50,7 +50,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     info = commands.add_parser(
         "info", help="metadata, inputs/outputs, sha256 and execution provider of a policy"
     )
-    info.add_argument("model", help="path to policy.onnx")
+    info.add_argument(
+        "model",
+        nargs="?",
+        help="path to policy.onnx (without it: onnxruntime's version and the execution "
+        "providers this machine offers, e.g. to check a Jetson's TensorRT/CUDA install)",
+    )
     info.add_argument(
         "--providers",
         default=",".join(LoopConfig().providers),
@@ -62,7 +67,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     info.set_defaults(func=run)
 
 
+def describe_runtime() -> list[str]:
+    """What onnxruntime this machine has and which execution providers it offers."""
+    import onnxruntime
+
+    return [
+        f"onnxruntime  {onnxruntime.__version__} ({onnxruntime.get_device()})",
+        f"providers    {', '.join(onnxruntime.get_available_providers())}",
+    ]
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.model is None:
+        print("\n".join(describe_runtime()))
+        return 0
     from carrt.policy import OnnxPolicy
 
     providers = [p.strip() for p in str(args.providers).split(",") if p.strip()]

@@ -182,11 +182,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from carrt.sim.runs import find_runs, load_metrics, render_sim_table
+def find_runs(paths: list[str]) -> list[Path]:
+    """Saved simulator runs (sim-runs/*.npz) among the paths; a car's directories have none,
+    so the car's report never imports the simulator."""
+    found: list[Path] = []
+    for raw in paths:
+        path = Path(raw)
+        if path.suffix == ".npz" and path.is_file():
+            found.append(path)
+        elif path.is_dir():
+            found.extend(sorted(path.glob("sim-runs/*.npz")) + sorted(path.glob("*.npz")))
+    return found
 
+
+def run(args: argparse.Namespace) -> int:
     sim_runs = find_runs(args.paths)
     if sim_runs:  # the paper's simulation table, from the runs' saved trajectories
+        from carrt.sim.runs import load_metrics, render_sim_table
+
         print("simulation (sim-runs/*.npz; plots beside them)")
         print(render_sim_table([load_metrics(p) for p in sim_runs]))
         print()

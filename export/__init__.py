@@ -5,6 +5,16 @@ thing: trace, attach carrt's metadata, check parity with PyTorch on recorded fra
 with carrt's own loader, and only then rename the file into place.
 """
 
-from export.onnx_export import DEFAULT_TOLERANCE, ExportRefused, ExportReport, export_policy
+from carrt.deps import exit_unless_installed
+
+# Without the train extra, one line naming it (exit 2) instead of a traceback from deep inside.
+exit_unless_installed("export", ("torch", "onnx"))
+
+from export.onnx_export import (  # noqa: E402
+    DEFAULT_TOLERANCE,
+    ExportRefused,
+    ExportReport,
+    export_policy,
+)
 
 __all__ = ["DEFAULT_TOLERANCE", "ExportRefused", "ExportReport", "export_policy"]

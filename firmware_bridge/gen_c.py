@@ -27,6 +27,16 @@ C_TYPES = {
 }
 
 
+def _own_doc(cls: type) -> str:
+    """The first line of a class's own docstring, else its name. Python 3.10 gives every Enum
+    without one the docstring "An enumeration." (3.11 gives None): that must not leak into
+    the header, or the header would depend on the Python that generated it."""
+    doc = cls.__dict__.get("__doc__")
+    if not doc or doc == "An enumeration.":
+        return cls.__name__
+    return doc.strip().splitlines()[0]
+
+
 def _snake(name: str) -> str:
     return re.sub(r"(?<!^)(?=[A-Z])", "_", name).lower()
 
@@ -70,9 +80,7 @@ def render() -> str:
     ]
     for enum in (m.State, m.Reason, m.ArmRefusal, m.ConfigResult):
         prefix = "CARRT_" + _snake(enum.__name__).upper()
-        out.append(
-            f"/* {enum.__doc__.strip().splitlines()[0] if enum.__doc__ else enum.__name__} */"
-        )
+        out.append(f"/* {_own_doc(enum)} */")
         for e in enum:
             out.append(f"#define {prefix}_{e.name} {e.value}")
         out.append("")

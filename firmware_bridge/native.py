@@ -1,15 +1,19 @@
-"""The firmware's C core, built on this machine and driven from Python through ctypes.
+"""The firmware's C core, compiled into the package and driven from Python through ctypes.
 
 Tests and the simulator's virtual microcontroller run the very C code that is flashed onto the
 board, not a Python re-implementation of it, so a safety rule can only be verified once. The
-library is compiled on demand with the same strict warnings the board build should pass, and
-cached under a hash of its sources and flags: editing a .c file rebuilds it, nothing else does.
+release library is compiled when the package is built (setup.py, as `firmware_bridge._fw_core`):
+nothing is compiled or written at run time, so a car or laptop without a compiler runs the
+virtual board too. A library built from other sources than the ones shipped beside it is refused
+with one line saying how to rebuild. Only the sanitizer tests compile a build here, on demand,
+into a per-user cache.
 """
 
 from __future__ import annotations
 
 import ctypes
 import hashlib
+import importlib.util
 import os
 import subprocess
 import tempfile
@@ -17,22 +21,16 @@ import threading
 from pathlib import Path
 
 from firmware_bridge import messages as m
-
-_HERE = Path(__file__).resolve().parent
-FIRMWARE_DIR = _HERE / "firmware"
-CORE_SRC = FIRMWARE_DIR / "carrt_fw" / "src"
-HOST_SRC = FIRMWARE_DIR / "host"
-SOURCES = (CORE_SRC / "fw_frame.c", CORE_SRC / "fw_core.c", HOST_SRC / "fw_host.c")
-HEADERS = (
-    CORE_SRC / "fw_hal.h",
-    CORE_SRC / "fw_frame.h",
-    CORE_SRC / "fw_core.h",
-    CORE_SRC / "protocol_generated.h",
+from firmware_bridge.core_sources import (
+    CORE_SRC,
+    FIRMWARE_DIR,
+    LIBRARY_MODULE,
+    SOURCES,
+    WARNING_FLAGS,
+    source_digest,
 )
 
 CC = "gcc"
-BASE_FLAGS = ("-std=c99", "-fPIC", "-shared", "-Wall", "-Wextra", "-Werror", "-Wshadow")
-RELEASE_FLAGS = ("-O2",)
 SANITIZE_FLAGS = (
     "-fsanitize=address,undefined",
     "-fno-sanitize-recover=all",
@@ -43,53 +41,51 @@ SANITIZE_FLAGS = (
 
 TX_BUFFER = 8192  # the harness's serial TX capacity (FWH_TX_CAPACITY)
 MAX_ENCODED_FRAME = 66  # FW_FRAME_MAX_ENCODED: 64 decoded bytes -> 65 COBS bytes + 0x00
+REBUILD_HINT = "reinstall carrt (pip install .) or, in a checkout, run make"
 
 
 class FirmwareBuildError(RuntimeError):
-    """The C core did not compile; the message carries the compiler's own output."""
+    """The C core library is missing, stale, or (sanitizer build) did not compile."""
 
 
 class SanitizerRuntimeMissing(RuntimeError):
     """The sanitized build was asked for in a process without the ASan runtime preloaded."""
 
 
-def _build_dir() -> Path:
-    # The package folder when it is writable (a checkout), else a per-user cache (an install).
-    candidates = [_HERE / "_build", Path.home() / ".cache" / "carrt"]
-    for path in candidates:
-        try:
-            path.mkdir(parents=True, exist_ok=True)
-        except OSError:
-            continue
-        if os.access(path, os.W_OK):
-            return path
-    raise FirmwareBuildError(f"no writable build directory among {candidates}")
+def release_library() -> Path:
+    """Path of the library built with the package; FirmwareBuildError when there is none."""
+    spec = importlib.util.find_spec(LIBRARY_MODULE)
+    if spec is None or not spec.origin or not os.path.exists(spec.origin):
+        raise FirmwareBuildError(
+            f"the firmware core library ({LIBRARY_MODULE}) is not built: {REBUILD_HINT}"
+        )
+    return Path(spec.origin)
 
 
-def _flags(sanitize: bool) -> tuple[str, ...]:
-    return BASE_FLAGS + (SANITIZE_FLAGS if sanitize else RELEASE_FLAGS)
+def _sanitizer_cache() -> Path:
+    path = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "carrt"
+    path.mkdir(parents=True, exist_ok=True)
+    return path
 
 
-_built: dict[bool, Path] = {}
 _build_lock = threading.Lock()
+_sanitized: Path | None = None
 
 
-def build_library(sanitize: bool = False) -> Path:
-    """Path of the compiled harness library, compiling it first if its sources changed.
+def build_sanitized_library() -> Path:
+    """Compile the core with ASan+UBSan for the sanitizer tests (needs gcc; test time only).
 
-    The output is written under a temporary name and renamed into place, so several pytest
-    processes may build at once and none ever loads a half-written file.
+    Cached under a hash of its sources and flags; the output is written under a temporary name
+    and renamed into place, so several pytest processes may build at once.
     """
+    global _sanitized
     with _build_lock:
-        if sanitize in _built and _built[sanitize].exists():
-            return _built[sanitize]
-        flags = _flags(sanitize)
-        digest = hashlib.sha256()
-        for path in SOURCES + HEADERS:
-            digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
-        digest.update(" ".join((CC, *flags)).encode())
-        name = f"libcarrt_fw-{digest.hexdigest()[:16]}{'-san' if sanitize else ''}.so"
-        out_dir = _build_dir()
+        if _sanitized is not None and _sanitized.exists():
+            return _sanitized
+        flags = ("-fPIC", "-shared", *WARNING_FLAGS, *SANITIZE_FLAGS)
+        digest = hashlib.sha256(f"{source_digest()} {CC} {' '.join(flags)}".encode())
+        name = f"libcarrt_fw-{digest.hexdigest()[:16]}-san.so"
+        out_dir = _sanitizer_cache()
         target = out_dir / name
         if not target.exists():
             fd, tmp_name = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=out_dir)
@@ -103,11 +99,12 @@ def build_library(sanitize: bool = False) -> Path:
             if result.returncode != 0:
                 os.unlink(tmp_name)
                 raise FirmwareBuildError(
-                    f"building the firmware core failed ({' '.join(cmd)}):\n{result.stderr}"
+                    f"building the sanitized firmware core failed ({' '.join(cmd)}):\n"
+                    f"{result.stderr}"
                 )
             os.chmod(tmp_name, 0o755)  # mkstemp made it private; the cache may be shared
             os.replace(tmp_name, target)
-        _built[sanitize] = target
+        _sanitized = target
         return target
 
 
@@ -131,6 +128,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
         "fwh_storage_get": (None, [c.c_void_p, u8p]),
         "fwh_storage_set": (None, [c.c_void_p, u8p]),
         "fwh_protocol_hash": (c.c_uint32, []),
+        "fwh_source_digest": (c.c_char_p, []),
         "fwh_payload_size": (c.c_int, [c.c_uint8]),
         "fwh_proto_roundtrip": (c.c_int, [c.c_uint8, c.c_char_p, c.c_size_t, u8p]),
         "fwh_encode_frame": (c.c_size_t, [c.c_uint8, c.c_uint16, c.c_char_p, c.c_size_t, u8p]),
@@ -152,13 +150,24 @@ def load_library(sanitize: bool = False) -> ctypes.CDLL:
     with _build_lock:
         lib = _libs.get(sanitize)
     if lib is None:
-        # Without the runtime preloaded, ASan would abort the whole interpreter on dlopen.
-        if sanitize and not hasattr(ctypes.CDLL(None), "__asan_init"):
-            raise SanitizerRuntimeMissing(
-                "the sanitized firmware needs the ASan runtime loaded first: run Python with "
-                "LD_PRELOAD=$(gcc -print-file-name=libasan.so) ASAN_OPTIONS=detect_leaks=0"
-            )
-        lib = _declare(ctypes.CDLL(str(build_library(sanitize))))
+        if sanitize:
+            # Without the runtime preloaded, ASan would abort the whole interpreter on dlopen.
+            if not hasattr(ctypes.CDLL(None), "__asan_init"):
+                raise SanitizerRuntimeMissing(
+                    "the sanitized firmware needs the ASan runtime loaded first: run Python with "
+                    "LD_PRELOAD=$(gcc -print-file-name=libasan.so) ASAN_OPTIONS=detect_leaks=0"
+                )
+            lib = _declare(ctypes.CDLL(str(build_sanitized_library())))
+        else:
+            path = release_library()
+            lib = _declare(ctypes.CDLL(str(path)))
+            built_from = lib.fwh_source_digest().decode()
+            if built_from != source_digest():
+                raise FirmwareBuildError(
+                    f"the firmware core library {path.name} was built from other C sources "
+                    f"({built_from}) than those in {FIRMWARE_DIR} ({source_digest()}): "
+                    f"{REBUILD_HINT}"
+                )
         with _build_lock:
             lib = _libs.setdefault(sanitize, lib)
     return lib

@@ -1,5 +1,7 @@
-"""Shared test setup: deterministic hypothesis runs, so CI never fails on a new random draw."""
+"""Shared test setup: deterministic hypothesis runs, so CI never fails on a new random draw;
+`--runtime-only`, the suite of the car's runtime without the train extra (Python 3.10 run)."""
 
+import importlib.util
 import os
 
 from hypothesis import HealthCheck, settings
@@ -25,3 +27,29 @@ def sim_episodes(tmp_path_factory):
     from e2e_rig import record_sim_dataset
 
     return record_sim_dataset(tmp_path_factory.mktemp("sim-data"))
+
+
+# Test modules that need the train extra (torch, training/, export/): `make test` runs every test
+# under 3.11, then everything else with --runtime-only under 3.10 in a venv without torch.
+TRAIN_TEST_MODULES = ("test_train_*.py", "test_export.py", "test_dirl_sim.py")
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--runtime-only",
+        action="store_true",
+        help="leave out the modules that need the train extra; fails if torch is installed",
+    )
+
+
+def pytest_configure(config):
+    if config.getoption("--runtime-only") and importlib.util.find_spec("torch") is not None:
+        raise pytest.UsageError("--runtime-only is for a venv without torch, and torch is here")
+
+
+def pytest_ignore_collect(collection_path, config):
+    if config.getoption("--runtime-only") and any(
+        collection_path.match(pattern) for pattern in TRAIN_TEST_MODULES
+    ):
+        return True
+    return None

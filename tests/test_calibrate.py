@@ -68,4 +68,4 @@ def test_update_toml_section_adds_missing_keys():
     )
     assert "steer_left_us = 990  # measured" in updated
     assert "steer_right_us = 2010" in updated
-    assert car_config.from_dict(__import__("tomllib").loads(updated)).pwm.steer_right_us == 2010
+    assert car_config.from_dict(car_config.tomllib.loads(updated)).pwm.steer_right_us == 2010

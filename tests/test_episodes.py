@@ -22,7 +22,8 @@ from carrt.episodes import (
 from carrt.episodes import cli as episodes_cli
 from carrt.episodes import format as fmt
 from carrt.episodes import writer as writer_mod
-from carrt.episodes.inspect import render_contact_sheet, render_video, summarize
+from carrt.episodes.inspect import render_contact_sheet, render_video
+from carrt.episodes.summary import summarize
 from carrt.errors import UserError
 from carrt.interfaces import HORIZON, EpisodeSink, Mode
 

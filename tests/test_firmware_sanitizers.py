@@ -33,9 +33,9 @@ def _asan_runtime() -> str | None:
 
 
 def _run_driver(mode: str) -> subprocess.CompletedProcess:
-    from firmware_bridge.native import build_library
+    from firmware_bridge.native import build_sanitized_library
 
-    build_library(sanitize=True)  # compile errors surface here, not inside the child
+    build_sanitized_library()  # compile errors surface here, not inside the child
     env = dict(os.environ)
     env.update(
         LD_PRELOAD=_asan_runtime() or "",

@@ -16,7 +16,8 @@ from carrt import model_info
 from carrt.errors import UserError
 from carrt.interfaces import Plan, Policy
 from carrt.model_contract import REQUIRED_KEYS, ContractError, TensorSpec, validate_io
-from carrt.policy import CPU, OnnxPolicy, PlanBuffer, select_providers
+from carrt.plan import PlanBuffer
+from carrt.policy import CPU, OnnxPolicy, select_providers
 
 CUDA, TRT = "CUDAExecutionProvider", "TensorrtExecutionProvider"
 

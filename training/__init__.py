@@ -2,3 +2,8 @@
 
 Nothing under carrt/ imports this package: the car runs the exported ONNX policy without torch.
 """
+
+from carrt.deps import exit_unless_installed
+
+# Without the train extra, one line naming it (exit 2) instead of a traceback from deep inside.
+exit_unless_installed("training", ("torch", "onnx"))

@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_ls(args: argparse.Namespace) -> int:
-    from carrt.episodes.inspect import summarize
+    from carrt.episodes.summary import summarize
 
     paths = list_episodes(args.dirs)
     print(f"{'episode':<22} {'duration':>9} {'frames':>7} {'avg m/s':>8}  end")
@@ -65,7 +65,7 @@ def run_ls(args: argparse.Namespace) -> int:
 
 
 def run_show(args: argparse.Namespace) -> int:
-    from carrt.episodes.inspect import format_summary, summarize
+    from carrt.episodes.summary import format_summary, summarize
 
     ep = read_episode(args.episode, verify_all=args.verify)
     summary = summarize(ep)

@@ -1,4 +1,4 @@
-"""What is in an episode: a summary dict, a video with the controls drawn on, a contact sheet.
+"""An episode for the eye: a video with the controls drawn on, and a contact sheet (OpenCV).
 
 These exist so a human can check a recording before it goes into training: that the camera was
 pointing where it should, that the e-stops and collisions are where they remember them, that
@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 
-from carrt.episodes.reader import Episode, collision_events, estop_count, speed_stats
+from carrt.episodes.reader import Episode
 from carrt.errors import UserError
 from carrt.interfaces import Mode
 
@@ -24,55 +23,6 @@ _MODE_COLOURS = {  # BGR
     int(Mode.AUTO): (230, 160, 40),
     int(Mode.ESTOP): (40, 40, 230),
 }
-
-
-def summarize(ep: Episode) -> dict[str, Any]:
-    steps = ep.steps
-    avg, top = speed_stats(steps["speed_mps"], steps["mode"])
-    counts = ep.meta.get("counts") or {}
-    model = ep.meta.get("model") or {}
-    n = ep.n
-    return {
-        "name": ep.name,
-        "path": str(ep.path),
-        "command": ep.meta.get("command") or ep.meta.get("session"),
-        "start": (ep.meta.get("start") or {}).get("time"),
-        "duration_s": ep.duration_s,
-        "frames": n,
-        "avg_speed_mps": avg,
-        "top_speed_mps": top,
-        "interventions": int(np.count_nonzero(steps["override"])),
-        "estops": estop_count(steps),
-        "noise_share": float(np.count_nonzero(steps["noise"]) / n) if n else 0.0,
-        "auto_share": float(np.count_nonzero(steps["mode"] == int(Mode.AUTO)) / n) if n else 0.0,
-        "collisions": len(collision_events(steps, (ep.meta.get("end") or {}).get("reason"))),
-        "collision_frames": int(ep.collision.sum()),
-        "laps_marked": int(np.count_nonzero(steps["lap"])),
-        "dropped": counts.get("dropped"),
-        "end_reason": ep.end_reason,
-        "torn_tail": ep.torn,
-        "model_sha256": model.get("sha256"),
-    }
-
-
-def format_summary(summary: dict[str, Any]) -> str:
-    dropped = "unknown (no end metadata)" if summary["dropped"] is None else summary["dropped"]
-    lines = [
-        f"episode        {summary['name']}  ({summary['path']})",
-        f"recorded by    {summary['command'] or '?'} at {summary['start'] or '?'}",
-        f"duration       {summary['duration_s']:.1f} s, {summary['frames']} frames",
-        f"speed          average {summary['avg_speed_mps']:.2f} m/s, "
-        f"top {summary['top_speed_mps']:.2f} m/s (while driving)",
-        f"interventions  {summary['interventions']}, e-stops {summary['estops']}, "
-        f"collisions {summary['collisions']} ({summary['collision_frames']} frames labelled)",
-        f"noise          {summary['noise_share']:.0%} of steps; AUTO {summary['auto_share']:.0%}",
-        f"laps marked    {summary['laps_marked']}",
-        f"dropped        {dropped}",
-        f"end            {summary['end_reason']}"
-        + ("  (torn tail ignored)" if summary["torn_tail"] else ""),
-        f"model          {summary['model_sha256'] or '-'}",
-    ]
-    return "\n".join(lines)
 
 
 def _require_frames(ep: Episode) -> None:

@@ -40,17 +40,6 @@ def save_run(
     return stem.with_suffix(".npz")
 
 
-def find_runs(paths: list[str]) -> list[Path]:
-    found: list[Path] = []
-    for raw in paths:
-        path = Path(raw)
-        if path.suffix == ".npz" and path.is_file():
-            found.append(path)
-        elif path.is_dir():
-            found.extend(sorted(path.glob("sim-runs/*.npz")) + sorted(path.glob("*.npz")))
-    return found
-
-
 def load_metrics(path: Path) -> tuple[str, Any]:
     with np.load(path) as data:
         track = build_track(str(data["layout"]), int(data["track_seed"]))

@@ -167,6 +167,13 @@ void fwh_storage_set(void *mem, const uint8_t *in) {
 
 uint32_t fwh_protocol_hash(void) { return (uint32_t)CARRT_PROTOCOL_HASH; }
 
+/* The digest of the sources this library was built from (setup.py passes it), so the Python
+ * side can refuse a library that is older than the C files beside it. */
+#ifndef CARRT_FW_SOURCE_DIGEST
+#define CARRT_FW_SOURCE_DIGEST "unknown"
+#endif
+const char *fwh_source_digest(void) { return CARRT_FW_SOURCE_DIGEST; }
+
 int fwh_payload_size(uint8_t type) { return carrt_payload_size(type); }
 
 #define FWH_ROUNDTRIP(id, name)        \
