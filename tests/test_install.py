@@ -12,6 +12,7 @@ import json
 import os
 import shutil
 import subprocess
+import tempfile
 import time
 from pathlib import Path
 
@@ -48,6 +49,8 @@ def clean_copy(dest: Path) -> Path:
 
 def run(cmd: list[str], **kwargs) -> subprocess.CompletedProcess:
     kwargs.setdefault("timeout", 300)
+    # Never from the checkout: `python -m` would import the tree there, not the install.
+    kwargs.setdefault("cwd", Path(tempfile.gettempdir()))
     return subprocess.run(cmd, capture_output=True, text=True, check=False, **kwargs)
 
 
@@ -133,12 +136,12 @@ def test_virtual_board_and_check_run_without_a_compiler_and_write_nothing(car_ve
     port = tmp_path / "board"
     board = subprocess.Popen(
         [str(car_venv / "python"), "-m", "firmware_bridge.virtual", "--port-path", str(port)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
     )  # fmt: skip
     try:
         ready = board.stdout.readline()
         assert "virtual board ready" in ready, ready + board.stderr.read()
-        check = run([str(car_venv / "carrt"), "check", "--port", str(port)], env=env)
+        check = run([str(car_venv / "carrt"), "check", "--port", str(port)], env=env, cwd=tmp_path)
         assert check.returncode == 0, check.stdout + check.stderr
         assert "protocol" in check.stdout.lower()
     finally:
