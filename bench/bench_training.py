@@ -1,12 +1,11 @@
 """Training throughput: windows per second of each DIRL stage, per model profile, on this machine.
 
-Each stage runs through the same loop iterate.py uses (batches from WindowDataset over episodes
-the real stack records in the simulator, Adam, gradient clipping), with the profile's preset
-batch sizes, after a few warm-up steps, at 1 torch thread and at torch's default thread count
-(on a small machine shared with other work, extra intra-op threads can cost more than they
-give). Also timed: WindowDataset alone (reading + resizing the future frames), the ceiling for
-every stage without DataLoader workers. Ratios printed: each stage's samples/s against the data
-ceiling, and the cpu profile's cost against tiny's.
+Each stage runs through the same loop iterate.py uses (batches gathered from one FrameStore of
+episodes the real stack records in the simulator, Adam, gradient clipping), with the profile's
+preset batch sizes, after a few warm-up steps, at 1 torch thread and at torch's default thread
+count (on a small machine shared with other work, extra intra-op threads can cost more than they
+give). Also timed: get_batch alone, the data ceiling of every stage. The cpu profile's figures
+are compared with BASELINE, measured before the training-speed work of issue 13.
 """
 
 from __future__ import annotations
@@ -20,9 +19,14 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 PROFILES = ("tiny", "cpu")
-STEPS = {"tiny": 20, "cpu": 6}
+STEPS = {"tiny": 20, "cpu": 12}
 WARMUP = 2
 STAGES = ("imitation", "world_model", "refine")
+# Samples/s of the cpu profile before issue 13's speed work (2026-11-22, this 2-core machine,
+# 2 torch threads, same sim episodes): width 24 at 96×96, 32×32 futures, a DataLoader reading
+# memory maps and resizing 10 future frames per window, imitation included.
+BASELINE = {"imitation": 265.0, "world_model": 99.0}
+BASELINE_BATCH = {"imitation": 64, "world_model": 16}
 
 
 def record_episodes(root: Path) -> Path:
@@ -48,24 +52,28 @@ def _stage(name, cfg, policy, world_model, windows, free, norm):
 def profile_throughput(profile: str, episodes) -> dict:
     import torch
 
-    from training.data import WindowDataset, compute_normalisation
+    from training.data import FrameStore, ImitationDataset, WindowDataset, compute_normalisation
     from training.iterate import PRESETS, IterateConfig
     from training.models import PolicyNet, WorldModel, count_parameters
 
-    cfg = dataclasses.replace(IterateConfig(profile=profile), **PRESETS[profile], progress=False)
+    preset = {**PRESETS[profile], "eval_every": 0}
+    cfg = dataclasses.replace(IterateConfig(profile=profile), **preset, progress=False)
     p = cfg.profile_obj
     norm = compute_normalisation(episodes)
-    windows = WindowDataset(episodes, p.horizon, predict_size=p.predict_size)
-    free = WindowDataset(episodes, p.horizon, predict_size=p.predict_size, collision_free_only=True)
+    store = FrameStore(episodes)
+    windows = WindowDataset(episodes, p.horizon, predict_size=p.predict_size, store=store)
+    free = ImitationDataset(episodes, p.horizon, store=store)
     torch.manual_seed(0)
     policy, world_model = PolicyNet(p), WorldModel(p)
     policy.set_normalisation(norm)
     world_model.set_normalisation(norm)
 
+    windows.get_batch(range(min(len(windows), 32)))  # the resized futures, built once
     start = time.perf_counter()
-    n = min(len(windows), 200)
-    for i in range(n):
-        windows[i]
+    n = 0
+    while time.perf_counter() - start < 0.5:
+        windows.get_batch(torch.randint(len(windows), (64,)).tolist())
+        n += 64
     data_rate = n / (time.perf_counter() - start)
 
     out = {
@@ -120,6 +128,15 @@ def run() -> dict:
                     f"samples/s ({s['step_ms']:.0f} ms/step) = "
                     f"{s['ratio_over_data_ceiling']:.2f} of the data ceiling"
                 )
+    cpu = result[f"threads_{default_threads}"]["cpu"]
+    for stage, before in BASELINE.items():
+        now = cpu[stage]["samples_per_s"]
+        result[f"cpu_{stage}_over_baseline"] = now / before
+        print(
+            f"   cpu {stage}: {now:.0f} samples/s (batch {cpu[stage]['batch_size']}) = "
+            f"{now / before:.1f}x the {before:.0f} before issue 13 "
+            f"(batch {BASELINE_BATCH[stage]}, {default_threads} threads)"
+        )
     best = result["threads_1"]
     for stage in STAGES:
         ratio = best["tiny"][stage]["samples_per_s"] / best["cpu"][stage]["samples_per_s"]

@@ -28,6 +28,7 @@ COMMANDS = (
     ("carrt.episodes.cli", "add_parser"),
     ("carrt.report", "add_parser"),
     ("carrt.model_info", "add_parser"),
+    ("carrt.eval_cmd", "add_parser"),
 )
 
 

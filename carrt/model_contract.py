@@ -26,7 +26,10 @@ OUTPUT_SIGMA = "sigma"
 
 IMAGE_SHAPE = (96, 96, 3)
 ACTION_NAMES = ("steering", "throttle")
-ACTION_LOW = (-1.0, 0.0)
+# Throttle < 0 brakes (and, held at rest, reverses): the demonstrator brakes, so the policy's
+# range must include it. Models exported when the contract had throttle ≥ 0 (action_low
+# "-1.0,0.0") still load: carrt clips to each model's own bounds, so they simply never brake.
+ACTION_LOW = (-1.0, -1.0)
 ACTION_HIGH = (1.0, 1.0)
 
 REQUIRED_KEYS = {
@@ -92,6 +95,15 @@ def validate_metadata(meta: Mapping[str, str], control_period_s: float | None = 
     high = _floats(meta["carrt.action_high"], "carrt.action_high")
     if len(low) != 2 or len(high) != 2 or any(lo >= hi for lo, hi in zip(low, high, strict=True)):
         raise ContractError(f"metadata action bounds {low}..{high} are not two valid ranges")
+    # Narrower than the contract is fine (an old model without braking has throttle ≥ 0);
+    # wider is not: the car has no command beyond full lock and full throttle.
+    for name, lo, hi, c_lo, c_hi in zip(
+        ACTION_NAMES, low, high, ACTION_LOW, ACTION_HIGH, strict=True
+    ):
+        if lo < c_lo or hi > c_hi:
+            raise ContractError(
+                f"metadata {name} bounds {lo}..{hi} exceed the contract's {c_lo}..{c_hi}"
+            )
     if meta["carrt.speed_units"] != "m/s":
         raise ContractError(
             f"metadata carrt.speed_units={meta['carrt.speed_units']!r}, expected m/s"

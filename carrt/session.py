@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import secrets
 import signal
 import threading
 import time
@@ -57,6 +58,12 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="with --sim: arm, engage AUTO, and reset the car after every collision",
     )
+    drive.add_argument(
+        "--expert-intervene",
+        action="store_true",
+        help="with --sim --autopilot: the scripted expert plays the person who takes over "
+        "when a collision is near (recorded as interventions: override + the expert's a*)",
+    )
     _common_arguments(drive)
     drive.set_defaults(func=run_drive)
 
@@ -85,7 +92,12 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--summary-json", help="also write the end-of-run summary here")
     sim = parser.add_argument_group("simulator (no car needed)")
     sim.add_argument("--sim", action="store_true", help="drive the built-in simulator")
-    sim.add_argument("--layout", default="easy", choices=("empty", "easy", "hard"))
+    sim.add_argument(
+        "--layout",
+        default="easy",
+        choices=("empty", "easy", "hard", "mixed"),
+        help="obstacles: none, 2, 8, or mixed (4-10 per placement)",
+    )
     sim.add_argument("--track-seed", type=int, default=0, help="obstacle placement seed")
     sim.add_argument(
         "--realtime",
@@ -263,6 +275,9 @@ def _episode_metadata(config, policy, link: BoardLink, mode: str) -> dict[str, A
     return {
         "carrt_version": __version__,
         "session": mode,
+        # One recording session is one placement of the obstacles on a real car: training
+        # holds out whole sessions (training.data.placement_key), so each run gets its own id.
+        "session_id": f"{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}",
         "car_config": config.to_dict(),
         "rate_hz": config.loop.rate_hz,
         "camera_source": config.camera.source,

@@ -141,4 +141,10 @@ def record_sim_dataset(root: Path) -> Path:
     crashes = ["drive", "--sim", "--autopilot", "--model", str(crash), "--record", "--layout",
                "easy", "--episodes", "3", "--out", str(out), "--duration", "600"]  # fmt: skip
     assert CliRun(crashes).result(timeout_s=300) == 0
+    # A second placement with one expert lap: training holds out whole placements, and either
+    # one held out must leave imitation targets (MANUAL steps) on both sides.
+    other = ["teleop", "--sim", "--expert", "auto", "--record", "--layout", "easy",
+             "--track-seed", "1", "--episodes", "1", "--laps", "1", "--out", str(out),
+             "--duration", "600"]  # fmt: skip
+    assert CliRun(other).result(timeout_s=300) == 0
     return out

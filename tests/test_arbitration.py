@@ -6,6 +6,7 @@ import math
 import threading
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from carrt.arbitration import BOARD_GRACE_S, Arbiter, ArbiterInputs, Decision
@@ -449,3 +450,24 @@ def test_inputs_are_plain_values():
         board_state=State.DISARMED,
     )
     assert replace(inputs, now=1.0).now == 1.0 and inputs.plan_action is None
+
+
+def test_a_braking_policy_reaches_the_board_command_negative(tmp_path):
+    """Negative throttle (brake/reverse) from an ONNX policy survives predict, the arbiter in
+    AUTO and the link's fixed-point command; the board then caps it at config max_reverse."""
+    pytest.importorskip("onnxruntime")
+    from onnx_models import build_policy
+
+    from carrt.policy import OnnxPolicy
+    from firmware_bridge.link import _to_fixed
+    from firmware_bridge.messages import SCALE
+
+    policy = OnnxPolicy(
+        build_policy(tmp_path / "brake.onnx", throttle=(-0.6, 0.0), throttle_clip=None)
+    )
+    mu = policy.predict(np.full((96, 96, 3), 9, np.uint8), 0.0).mu
+    rig = Rig()
+    rig.auto()
+    d = rig.tick(plan_action=(float(mu[0, 0]), float(mu[0, 1])))
+    assert d.source == "policy" and d.throttle == pytest.approx(-0.6)
+    assert _to_fixed(d.throttle) == -round(0.6 * SCALE)

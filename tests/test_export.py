@@ -48,7 +48,7 @@ def checkpoint(tmp_path_factory, sim_episodes) -> Path:
     path = tmp_path_factory.mktemp("ckpt") / "policy.pt"
     torch.save(
         {
-            "format": "carrt.checkpoint/1", "config": {}, "profile": "tiny",
+            "format": "carrt.checkpoint/2", "config": {}, "profile": "tiny",
             "stage": "imitation", "step": 7, "policy": policy.state_dict(),
             "world_model": None, "optimizer": None, "normalisation": norm.to_dict(),
             "data_digest": data_digest(episodes), "iteration": 2, "code_version": "test",

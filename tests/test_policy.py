@@ -78,12 +78,14 @@ def test_predict_refuses_an_image_that_is_not_96x96_uint8(policy):
 
 
 def test_mu_is_clipped_to_the_metadata_bounds(tmp_path):
+    # action_low "-1.0,0.0": a model exported before throttle could go negative still loads,
+    # and its plan is clipped to its own bounds, so it never brakes.
     path = build_policy(
         tmp_path / "wild.onnx",
         steering=50.0,
         throttle=(-0.5, 0.0),
         throttle_clip=None,
-        metadata_overrides={"carrt.action_high": "0.8,0.6"},
+        metadata_overrides={"carrt.action_high": "0.8,0.6", "carrt.action_low": "-1.0,0.0"},
     )
     policy = OnnxPolicy(path)
     assert policy.predict(image_with(255, 0), 0.0).mu[:, 0] == pytest.approx([0.8] * 10)
@@ -91,6 +93,19 @@ def test_mu_is_clipped_to_the_metadata_bounds(tmp_path):
     assert (policy.predict(image_with(0, 255), 0.0).mu[:, 1] == 0.0).all()
     fast = build_policy(tmp_path / "fast.onnx", throttle=(3.0, 0.0), throttle_clip=None)
     assert (OnnxPolicy(fast).predict(image_with(9, 9), 0.0).mu[:, 1] == 1.0).all()
+
+
+def test_a_policy_can_brake_with_negative_throttle(tmp_path):
+    path = build_policy(tmp_path / "brake.onnx", throttle=(-0.7, 0.0), throttle_clip=None)
+    policy = OnnxPolicy(path)
+    assert tuple(policy.action_low) == (-1.0, -1.0)
+    assert policy.predict(image_with(9, 9), 0.0).mu[:, 1] == pytest.approx([-0.7] * 10)
+
+
+def test_bounds_wider_than_the_contract_are_refused(tmp_path):
+    path = build_policy(tmp_path / "wide.onnx", metadata_overrides={"carrt.action_low": "-1,-2"})
+    with pytest.raises(UserError, match="exceed"):
+        OnnxPolicy(path)
 
 
 def test_warm_up_runs_and_returns_latencies(policy):

@@ -11,7 +11,7 @@ import pytest
 from carrt.sim.car import CarParams, footprint, step_car
 from carrt.sim.track import build_track, pose_at, project
 from carrt.sim.types import CarState, Obstacle
-from carrt.sim.world import RESET_BACK, SimWorld, StepInfo
+from carrt.sim.world import SimWorld, StepInfo
 
 P = CarParams()
 
@@ -48,7 +48,7 @@ def test_braking_stops_then_reverse_settles_at_reverse_speed():
 
 
 def test_minimum_turning_radius_at_low_speed_is_the_kinematic_one():
-    state, states = _drive(CarState(0, 0, 0), 12.0, 1.0, 0.2)
+    state, states = _drive(CarState(0, 0, 0), 12.0, -1.0, 0.2)
     assert 0.2 < state.v < 0.8 and not any(s.sliding for s in states)
     radius = P.wheelbase / math.tan(P.max_steer)
     assert state.v / state.yaw_rate == pytest.approx(radius, rel=1e-3)
@@ -56,7 +56,7 @@ def test_minimum_turning_radius_at_low_speed_is_the_kinematic_one():
     ys = np.array([s.y for s in states[-600:]])
     assert (xs.max() - xs.min()) / 2 == pytest.approx(radius, rel=0.02), "the drawn circle"
     assert (ys.max() - ys.min()) / 2 == pytest.approx(radius, rel=0.02)
-    assert state.yaw_rate > 0, "positive steering turns left"
+    assert state.yaw_rate > 0, "steering −1 (the protocol's left) turns counter-clockwise"
 
 
 def test_full_lock_at_speed_slides_wide_and_scrubs_speed():
@@ -80,7 +80,7 @@ def test_gentle_steering_does_not_slide():
 
 def test_steering_and_motor_lag_are_first_order():
     state, _ = _drive(CarState(0, 0, 0), P.steer_tau, 1.0, 0.0, dt=0.001)
-    assert state.steer / P.max_steer == pytest.approx(1 - math.exp(-1), abs=0.01)
+    assert -state.steer / P.max_steer == pytest.approx(1 - math.exp(-1), abs=0.01)
     state, _ = _drive(CarState(0, 0, 0), P.motor_tau, 0.0, 1.0, dt=0.001)
     assert state.motor == pytest.approx(1 - math.exp(-1), abs=0.01)
     after, _ = _drive(CarState(0, 0, 0), 0.05, 0.0, 1.0)
@@ -160,7 +160,7 @@ def test_front_corner_touching_the_fence_is_a_collision():
     assert world.car.x > 0.1, "the reference point is still well inside"
 
 
-def test_collided_car_stands_until_reset_which_backs_it_up_onto_the_centerline():
+def test_collided_car_stands_until_reset_which_lifts_it_back_onto_the_centerline():
     world = SimWorld("empty")
     world.step(0.5, 0.0, 1.0)
     assert not world.collided and world.last_safe_s > 0
@@ -179,8 +179,8 @@ def test_collided_car_stands_until_reset_which_backs_it_up_onto_the_centerline()
     world.reset()
     assert not world.collided and world.car.v == 0.0
     s, lat, heading = project(world.track, world.car.x, world.car.y)
-    gap = (safe - s) % world.track.length
-    assert gap == pytest.approx(RESET_BACK, abs=0.01) and abs(lat) < 1e-6
+    gap = (s - safe) % world.track.length
+    assert gap < 0.06 and abs(lat) < 1e-6, "set down where it left the line, not behind it"
     assert world.car.yaw == pytest.approx(heading)
     assert world.distance == 0.0
     world.reset(s=5.0)
@@ -188,13 +188,14 @@ def test_collided_car_stands_until_reset_which_backs_it_up_onto_the_centerline()
     assert (world.car.x, world.car.y) == pytest.approx(pose_at(world.track, 5.0)[:2])
 
 
-def test_reset_backs_off_further_when_a_bucket_sits_behind_the_crash():
+def test_reset_moves_on_past_a_bucket_at_the_set_down_place():
     track = build_track("empty")
     x, y, _ = pose_at(track, 4.0)
     world = _world_with_obstacle(x, y)
-    world.last_safe_s = 4.4  # reset would put the car's nose into the bucket
+    world.last_safe_s = 4.2  # setting it down here would put its tail against the bucket
     world.reset()
-    assert world.s < 4.0 - 0.2 and not world._collision()
+    assert world.s > 4.2 and not world._collision()
+    assert world._clear_at(world.s)
 
 
 def test_laps_progress_and_off_track_bookkeeping():

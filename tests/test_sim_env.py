@@ -20,7 +20,7 @@ def steer_to_centerline(env: CarrtSimEnv, info: dict, throttle: float) -> np.nda
     tx, ty, _ = pose_at(env.track, info["s"] + 0.5)
     err = math.atan2(ty - car.y, tx - car.x) - car.yaw
     err = (err + math.pi) % (2 * math.pi) - math.pi
-    return np.array([np.clip(2.0 * err, -1, 1), throttle], np.float32)
+    return np.array([np.clip(-2.0 * err, -1, 1), throttle], np.float32)  # −1 is left
 
 
 def test_check_env_passes():

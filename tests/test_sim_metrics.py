@@ -117,7 +117,7 @@ def test_recorder_with_auto_reset_and_the_plot(tmp_path):
     while world.laps < 1 and world.time < 30:
         steering, throttle = expert.act(world.car)
         if 3.0 < world.time < 6.0 and not crashed:
-            steering = -1.0  # swerve into the fence once
+            steering = 1.0  # swerve right, into the outer fence, once
         info = world.step(0.1, steering, throttle)
         recorder.record(world, info)
         if info.collision:

@@ -9,12 +9,16 @@ import torch
 from torch.utils.data import DataLoader
 
 from training.data import (
+    FrameStore,
+    ImitationDataset,
     Normalisation,
     WindowDataset,
     compute_normalisation,
     data_digest,
     load_episodes,
+    placement_key,
     split_by_episode,
+    split_by_placement,
 )
 
 H = 10
@@ -23,7 +27,7 @@ H = 10
 @pytest.fixture(scope="module")
 def episodes(sim_episodes):
     eps = load_episodes(sim_episodes)
-    assert len(eps) == 6
+    assert len(eps) == 7
     assert any(ep.collision.any() for ep in eps), "the fixture should hold collisions"
     return eps
 
@@ -110,7 +114,7 @@ def test_collision_free_windows_touch_no_collision_label(episodes, windows):
 def test_split_is_by_episode_and_seeded(episodes):
     train, val = split_by_episode(episodes, 0.34, seed=3)
     names_t, names_v = {e.name for e in train}, {e.name for e in val}
-    assert len(val) == 2 and len(train) == 4
+    assert len(val) == 2 and len(train) == 5  # round(7 · 0.34)
     assert not names_t & names_v and names_t | names_v == {e.name for e in episodes}
     again = split_by_episode(list(reversed(episodes)), 0.34, seed=3)
     assert {e.name for e in again[1]} == names_v  # the input order does not matter
@@ -155,3 +159,101 @@ def test_pickled_dataset_reopens_frames_instead_of_copying_them(windows):
     for k in (0, len(windows) - 1):
         for key, value in windows[k].items():
             assert torch.equal(clone[k][key], value), key
+
+
+# ------------------------------------------------------------ synthetic episodes (factory)
+def _episode(root, seed, modes, *, meta=None, overrides=(), collisions=()):
+    from episode_factory import make_step, metadata, write_episode
+
+    from carrt.episodes.reader import read_episode
+
+    steps = [
+        make_step(t, seed=seed, mode=m, override=t in overrides, collision=t in collisions)
+        for t, m in enumerate(modes)
+    ]
+    return read_episode(write_episode(root, steps, meta=metadata(**(meta or {}))))
+
+
+def test_split_holds_out_whole_placements(tmp_path):
+    """Defect 4: episodes of one placement are near-duplicates; validation must not see any
+    placement that training saw."""
+    from carrt.interfaces import Mode
+
+    eps = [
+        _episode(tmp_path / f"p{p}e{e}", 10 * p + e, [Mode.MANUAL] * 3,
+                 meta={"sim": {"layout": "hard", "track_seed": 1000 + p}})
+        for p in range(5) for e in range(3)
+    ]  # fmt: skip
+    train, val = split_by_placement(eps, 0.2, seed=0)
+    key = {id(ep): placement_key(ep) for ep in eps}
+    held = {key[id(ep)] for ep in val}
+    assert len(held) == 1 and len(val) == 3 and len(train) == 12
+    assert not held & {key[id(ep)] for ep in train}
+    assert placement_key(eps[0]) == "sim:hard:1000"
+    # one placement only: nothing to hold out by placement, whole episodes instead
+    one = [ep for ep in eps if key[id(ep)] == "sim:hard:1000"]
+    t1, v1 = split_by_placement(one, 0.34, seed=0)
+    assert len(v1) == 1 and len(t1) == 2
+    # a real car: a session id groups its episodes; without one, each episode stands alone
+    real = _episode(tmp_path / "real", 99, [Mode.MANUAL] * 3, meta={"session_id": "s1"})
+    assert placement_key(real) == "session:s1"
+    bare = _episode(tmp_path / "bare", 98, [Mode.MANUAL] * 3)
+    assert placement_key(bare) == f"episode:{bare.name}"
+
+
+def test_imitation_targets_manual_steps_and_interventions(tmp_path):
+    """a* is a target only where a person drove (MANUAL): in AUTO the sticks are untouched.
+    A take-over in AUTO (override, then MANUAL) labels states the policy reached, weighted."""
+    from carrt.interfaces import Mode
+
+    A, M, D = Mode.AUTO, Mode.MANUAL, Mode.DISARMED
+    modes = [M] * 4 + [A] * 4 + [M] * 4 + [D] * 2
+    ep = _episode(tmp_path, 1, modes, overrides={8})
+    ds = ImitationDataset([ep], H, intervention_weight=3.0)
+    starts = [int(t) for _, t in ds.index]
+    assert starts == [0, 1, 2, 3, 8, 9, 10, 11]
+    assert ds.interventions == 4
+    item = ds[0]  # t = 0: steps 0..3 manual, 4..7 auto, 8, 9 intervention
+    assert item["weight"].tolist() == [1.0] * 4 + [0.0] * 4 + [3.0] * 2
+    assert np.allclose(item["expert_actions"].numpy(), ep.steps["human_action"][:H])
+    last = ds[starts.index(11)]
+    assert last["weight"].tolist() == [3.0] + [0.0] * (H - 1)  # then DISARMED, then the end
+    assert "future_images" not in item  # imitation reads no future frames
+
+
+def test_imitation_leaves_out_windows_into_a_collision(tmp_path):
+    from carrt.interfaces import Mode
+
+    ep = _episode(tmp_path, 2, [Mode.MANUAL] * 30, collisions={20})
+    ds = ImitationDataset([ep], H)
+    assert all(not (t <= 20 <= t + H) for _, t in ds.index)
+    assert max(t for _, t in ds.index) == 29  # the last step is a start too
+
+
+def test_get_batch_matches_items_and_store_is_shared(episodes):
+    store = FrameStore(episodes)
+    a = WindowDataset(episodes, H, predict_size=16, store=store)
+    b = ImitationDataset(episodes, H, store=store)
+    assert a.store.frames.data_ptr() == b.store.frames.data_ptr()
+    rows = [0, 5, len(a) - 1]
+    batch = a.get_batch(rows)
+    for j, r in enumerate(rows):
+        for k, v in a[r].items():
+            assert torch.equal(batch[k][j], v), k
+
+
+def test_augmentation_is_seeded_and_changes_colours_only():
+    from training.augment import augment_images
+
+    rng = np.random.default_rng(0)
+    images = torch.from_numpy(rng.integers(0, 256, (6, 96, 96, 3), dtype=np.uint8))
+    one = augment_images(images, torch.Generator().manual_seed(1))
+    two = augment_images(images, torch.Generator().manual_seed(1))
+    assert one.dtype == torch.uint8 and one.shape == images.shape
+    assert torch.equal(one, two) and not torch.equal(one, images)
+    same = augment_images(images, torch.Generator().manual_seed(1), hue=0, saturation=0,
+                          brightness=0, contrast=0)  # fmt: skip
+    assert (same.int() - images.int()).abs().max() <= 1  # zero jitter is the identity
+    grey = torch.full((2, 8, 8, 3), 100, dtype=torch.uint8)
+    g = augment_images(grey, torch.Generator().manual_seed(3), brightness=0, contrast=0)
+    assert (g.int() - 100).abs().max() <= 1  # hue and saturation leave grey alone

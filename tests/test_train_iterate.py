@@ -88,7 +88,7 @@ def test_iteration_writes_policy_report_figures_and_onnx(iteration1, sim_episode
     else:
         assert m["collision_auroc"] is None  # NaN is written as null
     assert record["stages"]["imitation"]["steps"] == 6
-    assert record["data"]["episodes"] == 6
+    assert record["data"]["episodes"] == 7
 
     from carrt.policy import OnnxPolicy
 

@@ -48,7 +48,7 @@ def test_output_shapes_and_ranges(name, n):
     assert mu.shape == sigma.shape == sampled.shape == (n, h, 2)
     for a in (mu, sampled):
         assert (a[..., 0] >= -1).all() and (a[..., 0] <= 1).all()
-        assert (a[..., 1] >= 0).all() and (a[..., 1] <= 1).all()
+        assert (a[..., 1] >= -1).all() and (a[..., 1] <= 1).all()  # throttle < 0 brakes
     assert (sigma >= profile.min_sigma).all()
     assert isinstance(pred, WorldPrediction)
     check_nig(pred.image, (n, h, 3, size, size))

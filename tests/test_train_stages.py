@@ -17,7 +17,12 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from training import checkpoint as ck  # noqa: E402
-from training.data import WindowDataset, compute_normalisation, load_episodes  # noqa: E402
+from training.data import (  # noqa: E402
+    ImitationDataset,
+    WindowDataset,
+    compute_normalisation,
+    load_episodes,
+)
 from training.evaluate import auroc, spearman  # noqa: E402
 from training.imitation import imitation_loss, train_imitation  # noqa: E402
 from training.imitation import spec_for as imitation_spec  # noqa: E402
@@ -49,7 +54,7 @@ def data(sim_episodes):
     episodes = load_episodes([sim_episodes])
     norm = compute_normalisation(episodes)
     windows = WindowDataset(episodes, 10, predict_size=16)
-    free = WindowDataset(episodes, 10, predict_size=16, collision_free_only=True)
+    free = ImitationDataset(episodes, 10)
     return episodes, norm, windows, free
 
 
@@ -118,10 +123,46 @@ def test_imitation_loss_masks_steps_past_the_episode_end(data):
     policy, _ = models(norm)
     batch = torch.utils.data.default_collate([free[i] for i in range(4)])
     base, _ = imitation_loss(policy, batch)
-    batch["mask"][:, 5:] = 0
+    batch["weight"][:, 5:] = 0
     batch["expert_actions"][:, 5:] = 1e6  # would dominate if it were not masked
     masked, _ = imitation_loss(policy, batch)
     assert torch.isfinite(masked) and masked < 10 and masked != base
+
+
+def test_the_last_action_of_an_episode_is_an_imitation_target(data):
+    """Defect 6: the loss masked with `mask` (t+1+k < n), so a*_{n−1} was never a target."""
+    episodes, norm, windows, free = data
+    policy, _ = models(norm)
+    i, ep = 0, episodes[0]
+    row = int(np.flatnonzero((windows.index[:, 0] == i) & (windows.index[:, 1] == ep.n - 2))[0])
+    batch = torch.utils.data.default_collate([windows[row]])  # no `weight`: action_mask
+    assert batch["mask"][0, :2].tolist() == [1.0, 0.0]
+    base, _ = imitation_loss(policy, batch)
+    batch["expert_actions"][0, 1] = 100.0  # a*_{n−1}, the episode's last action
+    assert imitation_loss(policy, batch)[0] > base + 1.0
+    last = [k for k, (j, t) in enumerate(free.index) if j == i and t == ep.n - 1]
+    if last:  # the last step itself is a start of the imitation data (when labelled)
+        assert free[last[0]]["weight"][0] == 1.0
+
+
+def test_imitation_learns_to_brake(data):
+    """Defect 2: a* with negative throttle (the expert brakes) is learnable (tanh head)."""
+    _, norm, _, free = data
+
+    class Braking(_Relabelled):
+        def __getitem__(self, i):
+            item = dict(self.base[i])
+            item["expert_actions"] = torch.tensor([0.0, -0.6]).expand(10, 2).clone()
+            return item
+
+    policy, _ = models(norm)
+    train_imitation(tiny(imitation_steps=25, imitation_batch_size=8, imitation_lr=1e-2), policy,
+                    Braking(free))  # fmt: skip
+    batch = torch.utils.data.default_collate([free[i] for i in range(8)])
+    policy.eval()
+    with torch.no_grad():
+        mu, _ = policy(batch["image"], batch["speed"])
+    assert mu[..., 1].mean() < -0.4, mu[..., 1].mean()
 
 
 @pytest.fixture(scope="module")
@@ -286,3 +327,31 @@ def test_auroc_matches_the_pairwise_definition():
     assert auroc([0.1, 0.9], [0, 1]) == 1.0 and auroc([0.9, 0.1], [0, 1]) == 0.0
     assert np.isnan(auroc([0.1, 0.2], [0, 0]))
     assert spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
+
+
+def test_final_averages_each_key_over_the_entries_that_have_it():
+    """Defect 5: val_* is logged every eval_every steps only; dividing by every logged entry
+    made report.md's validation loss ~10x too small."""
+    from training.trainer import StageResult
+
+    history = [{"step": s, "loss": 1.0} for s in range(1, 10)]
+    history.append({"step": 10, "loss": 1.0, "val_loss": 0.5})
+    history += [{"step": s, "loss": 3.0} for s in range(11, 20)]
+    history.append({"step": 20, "loss": 3.0, "val_loss": 0.7})
+    final = StageResult("imitation", 20, history).final(last=10)
+    assert final["loss"] == pytest.approx(3.0)
+    assert final["val_loss"] == pytest.approx(0.6)
+    assert StageResult("imitation", 0, []).final() == {}
+
+
+def test_imitation_lr_follows_a_cosine_to_its_final_fraction():
+    from training.trainer import StageSpec
+
+    spec = StageSpec("imitation", steps=101, batch_size=1, lr=1e-3, grad_clip=1.0,
+                     ckpt_every=0, log_every=1, seed=0, final_lr_fraction=0.05)  # fmt: skip
+    assert spec.lr_at(0) == pytest.approx(1e-3)
+    assert spec.lr_at(50) == pytest.approx(1e-3 * (0.05 + 0.95 * 0.5))
+    assert spec.lr_at(100) == pytest.approx(5e-5)
+    constant = StageSpec("world_model", steps=101, batch_size=1, lr=5e-4, grad_clip=1.0,
+                         ckpt_every=0, log_every=1, seed=0)  # fmt: skip
+    assert constant.lr_at(100) == 5e-4

@@ -19,7 +19,10 @@ import torch
 
 import carrt
 
-FORMAT = "carrt.checkpoint/1"
+# /2: the policy's throttle head is tanh over [-1, 1] (it can brake) and the cpu profile's
+# backbone is 16 wide. A /1 policy would load into /2 code and silently drive differently
+# (sigmoid weights read through tanh), so /1 files are refused with a line saying why.
+FORMAT = "carrt.checkpoint/2"
 STAGES = ("imitation", "world_model", "refine")
 REQUIRED = (
     "config",
@@ -95,6 +98,11 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
         raise CheckpointError(f"checkpoint {path}: unreadable ({exc})") from exc
+    if isinstance(ckpt, dict) and ckpt.get("format") == "carrt.checkpoint/1":
+        raise CheckpointError(
+            f"checkpoint {path}: carrt.checkpoint/1, from before the policy could brake "
+            "(throttle head and cpu profile changed): train it again"
+        )
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {path}: not a {FORMAT} file")
     missing = [k for k in REQUIRED if k not in ckpt]

@@ -1,9 +1,11 @@
 """Training data over carrt episodes: windows of H steps, splits, digest, normalisation.
 
-Episodes are read only with carrt's reader (one implementation of the format). Frames stay in
-the reader's memory maps and are copied one window at a time, so a dataset of any size costs
-only its small per-step arrays in RAM; DataLoader workers reopen the maps instead of being
-sent a pickled copy of every frame.
+Episodes are read only with carrt's reader (one implementation of the format). Training on a
+CPU is limited by compute, and every millisecond spent reading memory maps per window is a
+millisecond the two cores do not train: so all frames are decoded once into one uint8 tensor
+in RAM (FrameStore, 2.8 GB per 100K frames) and a batch is gathered by tensor indexing,
+without DataLoader workers. Imitation reads only the current frame (ImitationDataset); the
+world model's future frames come from a once-resized copy of the store.
 """
 
 from __future__ import annotations
@@ -19,9 +21,10 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, default_collate
 
 from carrt.episodes.reader import Episode, list_episodes, read_episode
+from carrt.interfaces import IMAGE_SHAPE, Mode
 
 IMAGE_STD_MIN = 1e-2  # in 0..1 pixel units: a constant channel must not divide by ~0
 SPEED_STD_MIN = 0.1  # m/s: data recorded standing still must not blow the speed input up
@@ -92,6 +95,51 @@ def split_by_episode(
     return train, val
 
 
+def placement_key(ep: Episode) -> str:
+    """The obstacle placement an episode was driven on; episodes sharing it are near-duplicates.
+
+    An explicit meta["placement"] wins; a simulator recording names its layout and track seed
+    (meta["sim"], written by `carrt teleop/drive --sim`); on a real car one recording session
+    is one placement of the obstacles (meta["session_id"], when the session writes one).
+    Without any of these the episode is its own placement, the old per-episode split.
+    """
+    meta = ep.meta or {}
+    if meta.get("placement") is not None:
+        return f"placement:{meta['placement']}"
+    sim = meta.get("sim")
+    if isinstance(sim, dict) and sim.get("track_seed") is not None:
+        return f"sim:{sim.get('layout')}:{sim['track_seed']}"
+    if meta.get("session_id") is not None:
+        return f"session:{meta['session_id']}"
+    return f"episode:{ep.name}"
+
+
+def split_by_placement(
+    episodes: Sequence[Episode], val_fraction: float, seed: int
+) -> tuple[list[Episode], list[Episode]]:
+    """(train, val) with whole placements held out (placement_key), so the held-out loss
+    measures driving past obstacles the policy has never seen, not frames next to ones it
+    trained on: episodes of one placement are near-duplicates of each other.
+
+    val_fraction is a share of the placements, ranked by a seeded hash of their key (stable as
+    data is added). With a single placement there is nothing to hold out by placement, and the
+    split falls back to whole episodes (split_by_episode).
+    """
+    keys = [placement_key(ep) for ep in episodes]
+    groups = sorted(set(keys))
+    if len(groups) < 2:
+        return split_by_episode(episodes, val_fraction, seed)
+    if not 0.0 <= val_fraction < 1.0:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    n_val = round(len(groups) * val_fraction)
+    if val_fraction > 0:
+        n_val = min(max(n_val, 1), len(groups) - 1)
+    held = set(sorted(groups, key=lambda k: _rank_key(seed, k))[:n_val])
+    train = [ep for ep, k in zip(episodes, keys, strict=True) if k not in held]
+    val = [ep for ep, k in zip(episodes, keys, strict=True) if k in held]
+    return train, val
+
+
 def data_digest(episodes: Sequence[Episode]) -> str:
     """sha256 over the episodes' names, step counts and metadata, independent of their order:
     it names a training set (in checkpoints and exported models) without hashing gigabytes."""
@@ -146,12 +194,26 @@ class _Arrays:
     expert: np.ndarray  # (n, 2) float32: a*
     executed: np.ndarray  # (n, 2) float32: a
     collision: np.ndarray  # (n,) float32: c
+    label: np.ndarray  # (n,) float32: 1 where a* is the person's command (mode MANUAL)
+    intervention: np.ndarray  # (n,) bool: MANUAL steps of a take-over from AUTO
+
+
+def _intervention_steps(mode: np.ndarray, override: np.ndarray) -> np.ndarray:
+    """True from each override edge (the person took over in AUTO) while the mode stays MANUAL."""
+    out = np.zeros(len(mode), dtype=bool)
+    on = False
+    for t in range(len(mode)):
+        on = bool(override[t]) or (on and mode[t] == int(Mode.MANUAL))
+        out[t] = on and mode[t] == int(Mode.MANUAL)
+    return out
 
 
 def _arrays(ep: Episode) -> _Arrays:
     def clean(x: np.ndarray) -> np.ndarray:
         return np.nan_to_num(np.asarray(x, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
 
+    mode = np.asarray(ep.steps["mode"], dtype=np.int64)
+    override = np.asarray(ep.steps["override"], dtype=bool)
     return _Arrays(
         path=Path(ep.path),
         n=ep.n,
@@ -159,13 +221,77 @@ def _arrays(ep: Episode) -> _Arrays:
         expert=clean(ep.steps["human_action"]),
         executed=clean(ep.steps["executed_action"]),
         collision=np.asarray(ep.collision, dtype=np.float32),
+        label=(mode == int(Mode.MANUAL)).astype(np.float32),
+        intervention=_intervention_steps(mode, override),
     )
 
 
-def _edge_slice(a: np.ndarray, start: int, length: int) -> np.ndarray:
-    """a[start:start+length], padded at the end by repeating the last row."""
-    idx = np.minimum(np.arange(start, start + length), len(a) - 1)
-    return a[idx]
+def _area_resize(frames: torch.Tensor, size: int) -> torch.Tensor:
+    """uint8 (N, h, w, 3) → uint8 (N, size, size, 3), area mean, rounded."""
+    if frames.shape[1] == size and frames.shape[2] == size:
+        return frames
+    y = F.interpolate(frames.permute(0, 3, 1, 2).float(), size=(size, size), mode="area")
+    return y.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).contiguous()
+
+
+class FrameStore:
+    """Every frame of a list of episodes, decoded once into one uint8 tensor in RAM.
+
+    Why: a training step gathers its batch with one index_select instead of 64 memory-map
+    reads and 640 per-window resizes (measured: 17 % of an imitation step went to loading),
+    and the world model's future frames are resized once per frame, not once per window they
+    appear in (H = 10 times). 100K frames cost 2.8 GB (+0.3 GB at predict_size 32). Global step
+    g of episode i is offsets[i] + t; the per-step arrays are concatenated the same way.
+    Pickling (DataLoader workers) sends the episode paths only; the frames are re-read there.
+    """
+
+    def __init__(self, episodes: Sequence[Episode]) -> None:
+        self.paths = [Path(ep.path) for ep in episodes]
+        self._eps = [_arrays(ep) for ep in episodes]
+        self.offsets = np.cumsum([0, *(a.n for a in self._eps)]).astype(np.int64)
+        self._load(episodes)
+
+    def _load(self, episodes: Sequence[Episode] | None = None) -> None:
+        if episodes is None:
+            episodes = [read_episode(p) for p in self.paths]
+        total = int(self.offsets[-1])
+        self.frames = torch.empty((total, *IMAGE_SHAPE), dtype=torch.uint8)
+        view = self.frames.numpy()
+        for i, ep in enumerate(episodes):
+            view[self.offsets[i] : self.offsets[i + 1]] = ep.frames[: self._eps[i].n]
+        self._resized: dict[int, torch.Tensor] = {}
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state.pop("frames", None)
+        state.pop("_resized", None)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._load()
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def arrays(self, i: int) -> _Arrays:
+        return self._eps[i]
+
+    def cat(self, field: str) -> np.ndarray:
+        """One per-step field of every episode, concatenated in global step order."""
+        return np.concatenate([getattr(a, field) for a in self._eps]) if self._eps else np.zeros(0)
+
+    def resized(self, size: int) -> torch.Tensor:
+        """All frames area-resized to size × size (computed once, in chunks, then cached)."""
+        if size not in self._resized:
+            if size == IMAGE_SHAPE[0]:
+                self._resized[size] = self.frames
+            else:
+                out = torch.empty((len(self), size, size, 3), dtype=torch.uint8)
+                for s in range(0, len(self), 1024):
+                    out[s : s + 1024] = _area_resize(self.frames[s : s + 1024], size)
+                self._resized[size] = out
+        return self._resized[size]
 
 
 class WindowDataset(Dataset):
@@ -177,9 +303,17 @@ class WindowDataset(Dataset):
     collisions (H,) the labels c of t+1..t+H; mask (H,) 1 where step t+1+k exists;
     action_mask (H,) 1 where step t+k exists (one more than mask at an episode's end).
     Past an episode's end every field repeats its last real row; the masks say so.
-    collision_free_only keeps the starts whose c_t and window labels are all 0 (the paper's
-    imitation data).
+    collision_free_only keeps the starts whose c_t and window labels are all 0.
+
+    get_batch(items) builds a whole batch by tensor indexing (the trainer's fast path, no
+    DataLoader); dataset[i] is get_batch([i]) without the batch dimension. Datasets over the
+    same episodes should share one FrameStore (store=), or each holds its own copy in RAM.
     """
+
+    fields = (
+        "image", "speed", "expert_actions", "actions", "future_images", "future_speeds",
+        "collisions", "mask", "action_mask",
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -188,20 +322,39 @@ class WindowDataset(Dataset):
         *,
         predict_size: int = 16,
         collision_free_only: bool = False,
+        store: FrameStore | None = None,
     ) -> None:
         self.horizon = int(horizon)
         self.predict_size = int(predict_size)
         self.collision_free_only = collision_free_only
         self.names = [ep.name for ep in episodes]
-        self._eps = [_arrays(ep) for ep in episodes]
-        self._frames: dict[int, np.ndarray] = {i: ep.frames for i, ep in enumerate(episodes)}
-        index: list[tuple[int, int]] = []
-        for i, a in enumerate(self._eps):
-            for t in range(a.n - 1):
-                if collision_free_only and a.collision[t : t + 1 + self.horizon].any():
-                    continue
-                index.append((i, t))
-        self.index = np.asarray(index, dtype=np.int64).reshape(-1, 2)
+        self.store = store if store is not None else FrameStore(episodes)
+        if len(self.store.paths) != len(episodes):
+            raise ValueError("store= holds other episodes than the ones given")
+        self._eps = self.store._eps
+        self.index = self._build_index()
+        self._globals()
+
+    def _starts(self, a: _Arrays) -> range:
+        return range(a.n - 1)
+
+    def _keep(self, a: _Arrays, t: int) -> bool:
+        return not (self.collision_free_only and a.collision[t : t + 1 + self.horizon].any())
+
+    def _build_index(self) -> np.ndarray:
+        index = [
+            (i, t) for i, a in enumerate(self._eps) for t in self._starts(a) if self._keep(a, t)
+        ]
+        return np.asarray(index, dtype=np.int64).reshape(-1, 2)
+
+    def _globals(self) -> None:
+        s = self.store
+        self._speed = torch.from_numpy(s.cat("speed").astype(np.float32))
+        self._expert = torch.from_numpy(s.cat("expert").astype(np.float32).reshape(-1, 2))
+        self._executed = torch.from_numpy(s.cat("executed").astype(np.float32).reshape(-1, 2))
+        self._collision = torch.from_numpy(s.cat("collision").astype(np.float32))
+        self._start = torch.from_numpy(s.offsets[self.index[:, 0]] + self.index[:, 1])
+        self._end = torch.from_numpy(s.offsets[self.index[:, 0] + 1] - 1)  # last step
 
     def __len__(self) -> int:
         return len(self.index)
@@ -215,43 +368,91 @@ class WindowDataset(Dataset):
             pos, cnt = pos + int(c.sum()), cnt + len(c)
         return pos / cnt if cnt else 0.0
 
-    def __getstate__(self) -> dict[str, Any]:
-        # The memory maps are not sent to DataLoader workers (pickling one copies every frame);
-        # each worker reopens the episodes it touches.
-        state = self.__dict__.copy()
-        state["_frames"] = {}
-        return state
+    def _steps(self, items) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(start (B,), end (B,), t+k (B,H) clamped at the episode's last step), global steps."""
+        rows = torch.as_tensor(np.asarray(items, dtype=np.int64).reshape(-1))
+        start, end = self._start[rows], self._end[rows]
+        now = torch.minimum(start[:, None] + torch.arange(self.horizon), end[:, None])
+        return start, end, now
 
-    def _frames_of(self, i: int) -> np.ndarray:
-        frames = self._frames.get(i)
-        if frames is None:
-            frames = read_episode(self._eps[i].path).frames[: self._eps[i].n]
-            self._frames[i] = frames
-        return frames
-
-    def _resize(self, frames: np.ndarray) -> torch.Tensor:
-        x = torch.from_numpy(frames)
-        if frames.shape[1] == self.predict_size and frames.shape[2] == self.predict_size:
-            return x
-        size = (self.predict_size, self.predict_size)
-        y = F.interpolate(x.permute(0, 3, 1, 2).float(), size=size, mode="area")
-        return y.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).contiguous()
+    def get_batch(self, items: Sequence[int] | np.ndarray) -> dict[str, torch.Tensor]:
+        """The batch of the given item numbers, built by tensor indexing."""
+        start, end, now = self._steps(items)
+        ks = torch.arange(self.horizon)
+        future = torch.minimum(start[:, None] + 1 + ks, end[:, None])
+        batch = {
+            "image": self.store.frames[start],
+            "speed": self._speed[start][:, None],
+            "expert_actions": self._expert[now],
+            "action_mask": (start[:, None] + ks <= end[:, None]).float(),
+        }
+        if "actions" in self.fields:
+            small = self.store.resized(self.predict_size)
+            batch.update(
+                actions=self._executed[now],
+                future_images=small[future],
+                future_speeds=self._speed[future][..., None],
+                collisions=self._collision[future],
+                mask=(start[:, None] + 1 + ks <= end[:, None]).float(),
+            )
+        return batch
 
     def __getitem__(self, item: int) -> dict[str, torch.Tensor]:
-        i, t = (int(v) for v in self.index[item])
-        a, h = self._eps[i], self.horizon
-        frames = self._frames_of(i)
-        ks = np.arange(h)
-        future = np.minimum(t + 1 + ks, a.n - 1)
-        # Fancy indexing copies the rows out of the memory map; the map itself stays shared.
-        return {
-            "image": torch.from_numpy(np.array(frames[t])),
-            "speed": torch.tensor([a.speed[t]], dtype=torch.float32),
-            "expert_actions": torch.from_numpy(_edge_slice(a.expert, t, h)),
-            "actions": torch.from_numpy(_edge_slice(a.executed, t, h)),
-            "future_images": self._resize(np.asarray(frames[future])),
-            "future_speeds": torch.from_numpy(a.speed[future][:, None].copy()),
-            "collisions": torch.from_numpy(a.collision[future].copy()),
-            "mask": torch.from_numpy((t + 1 + ks < a.n).astype(np.float32)),
-            "action_mask": torch.from_numpy((t + ks < a.n).astype(np.float32)),
-        }
+        return {k: v[0] for k, v in self.get_batch([int(item)]).items()}
+
+
+class ImitationDataset(WindowDataset):
+    """Imitation's data: frame t, speed t and the person's next H commands, nothing else.
+
+    Only a* that a person (or the scripted expert playing one) gave are targets: steps in mode
+    MANUAL. In AUTO the sticks are untouched and a* would teach "do nothing"; after an e-stop
+    the car is DISARMED. A take-over in AUTO (override) switches the mode to MANUAL, so the
+    person's commands on states the policy itself reached are targets too, weighted by
+    intervention_weight. Every start t with a* label counts, the episode's last step included;
+    no future frames are read. `weight` (H,) is the per-step target weight, 0 where there is
+    no label (past the end, not MANUAL).
+    """
+
+    fields = ("image", "speed", "expert_actions", "action_mask", "weight")
+
+    def __init__(
+        self,
+        episodes: Sequence[Episode],
+        horizon: int = 10,
+        *,
+        collision_free_only: bool = True,
+        intervention_weight: float = 1.0,
+        store: FrameStore | None = None,
+    ) -> None:
+        self.intervention_weight = float(intervention_weight)
+        super().__init__(
+            episodes, horizon, predict_size=IMAGE_SHAPE[0],
+            collision_free_only=collision_free_only, store=store,
+        )  # fmt: skip
+        w = self.store.cat("label").astype(np.float32)
+        w[self.store.cat("intervention").astype(bool)] *= self.intervention_weight
+        self._weight = torch.from_numpy(w)
+
+    def _starts(self, a: _Arrays) -> range:
+        return range(a.n)
+
+    def _keep(self, a: _Arrays, t: int) -> bool:
+        return bool(a.label[t]) and super()._keep(a, t)
+
+    @property
+    def interventions(self) -> int:
+        """Start steps that are a person's take-over from the policy."""
+        return int(sum(self._eps[i].intervention[t] for i, t in self.index))
+
+    def get_batch(self, items) -> dict[str, torch.Tensor]:
+        batch = super().get_batch(items)
+        batch["weight"] = self._weight[self._steps(items)[2]] * batch["action_mask"]
+        return batch
+
+
+def take(dataset: Dataset, items: Iterable[int]) -> dict[str, torch.Tensor]:
+    """A batch of the given items: the dataset's get_batch when it has one, else collated."""
+    items = list(items)
+    if hasattr(dataset, "get_batch"):
+        return dataset.get_batch(items)
+    return default_collate([dataset[i] for i in items])

@@ -1,23 +1,34 @@
 """Reproduce the policy that `make demo` drives with, from nothing but this repository.
 
     python training/demo_policy.py                    # → carrt/assets/demo_policy.onnx
-    python training/demo_policy.py --work /tmp/dp --threads 2
+    python training/demo_policy.py --work /tmp/dp --jobs 2
 
 Why a script and not a download: the demo must show a policy this project trained, and a user
-must be able to check that claim. Three of the project's own commands, top to bottom:
+must be able to check that claim. The project's own commands, top to bottom, each resumable
+(a finished step is skipped when the script runs again):
 
-1. `carrt teleop --sim --expert auto --record --random-start`: the scripted expert drives the
-   `hard` layout (8 obstacles) on five obstacle placements, one lap per episode from a random
-   place at rest, with the paper's noise injection half of the time (the expert recovers).
-2. `training/iterate.py --profile cpu`, imitation only, 3000 steps, seed 0 (twice the study's
-   data and steps: in the study, at our training budget, imitation drove better than every
-   DIRL policy, so the demo ships imitation; about 25 minutes on 2 cores).
-3. `python -m export --int8`: the int8 file (1.7 MB instead of 6.5) is what ships; its error
-   against the float model is checked on recorded frames before it is written (and it drove
-   the held-out placements as well as the float model did).
+1. Demonstrations (`python -m training.sim_data demos`, i.e. `carrt teleop --sim --expert auto
+   --record --random-start` per placement): the scripted expert drives 220 obstacle placements
+   (seeds 1000-1219; `mixed` layouts with 4-10 obstacles and the 8-obstacle `hard` layout in
+   turn, random colours), 6 episodes each from random places at rest, with the paper's noise
+   injection half of the time (the recordings hold the expert's recoveries). Both cores.
+2. Imitation (`training/iterate.py --profile cpu`, imitation only, colour augmentation, 8000
+   steps of batch 64 with the learning rate decaying on a cosine).
+3. Take-overs (`python -m training.sim_data interventions`, i.e. `carrt drive --sim --autopilot
+   --expert-intervene --record`): the imitation policy drives 100 training placements for 60
+   simulated seconds each; the expert, playing the person with the pad, takes over before a
+   collision, and its commands label the states the policy itself reached (what a person's
+   interventions give on a real car).
+4. Imitation again on demonstrations + take-overs (a fresh model, DAgger-style aggregation),
+   16000 steps.
+5. `python -m export --int8`: the int8 file is what ships; its error against the float model
+   is checked on recorded frames before it is written.
+6. `carrt eval` on the held-out placements 100-104 of the `hard` layout (never recorded for
+   training), 60 simulated seconds each, two seeds: the paper's table, saved as JSON.
 
-Finally the policy drives a held-out placement (never in the data) and the paper's metrics are
-printed. Seeds are fixed; torch and onnxruntime versions decide whether the bytes are identical.
+Training sees only episodes (what a real car records); the simulator's ground truth is used to
+play the person (when to take over) and to evaluate. Seeds are fixed; torch and onnxruntime
+versions decide whether the bytes are identical.
 """
 
 from __future__ import annotations
@@ -26,53 +37,78 @@ import argparse
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = ROOT / "carrt" / "assets" / "demo_policy.onnx"
-TRAIN_TRACKS = (0, 1, 2, 3, 4)
-HELD_OUT_TRACK = 101
+DEMO_TRACKS = "1000-1219"
+TAKEOVER_TRACKS = "1000-1099"
+LAYOUTS = "mixed,hard"
+EVAL_TRACKS = "100-104"
 
 
-def run(argv: list[str]) -> None:
+def run(argv: list[str], done: Path | None = None) -> None:
+    """One step; skipped when its `done` marker exists (resume after an interruption)."""
+    if done is not None and done.exists():
+        print(f"(done) {' '.join(argv)}", flush=True)
+        return
     print("$ " + " ".join(argv), flush=True)
+    start = time.monotonic()
     code = subprocess.call(argv, cwd=ROOT)
     if code != 0:
         raise SystemExit(f"demo_policy: command failed with exit {code}")
+    print(f"  ({time.monotonic() - start:.0f} s)", flush=True)
+    if done is not None:
+        done.parent.mkdir(parents=True, exist_ok=True)
+        done.touch()
+
+
+def imitation(
+    py: str, episodes: list[Path], out: Path, a: argparse.Namespace, steps: int
+) -> list[str]:
+    return [py, str(ROOT / "training" / "iterate.py"), "--episodes", *map(str, episodes),
+            "--out", str(out), "--profile", "cpu", "--seed", str(a.seed),
+            "--set", f"imitation_steps={steps}", "--set", "world_model_steps=0",
+            "--set", "refine_steps=0", "--set", f"threads={a.threads}",
+            "--set", "progress=false", "--set", "figures=false"]  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="training/demo_policy.py", description=__doc__.split("\n")[0])
     p.add_argument("--out", default=str(SHIPPED), help=f"default: {SHIPPED.relative_to(ROOT)}")
     p.add_argument("--work", default="demo-policy-work", help="data and training run directory")
-    p.add_argument("--episodes", type=int, default=12, help="expert episodes per placement")
-    p.add_argument("--steps", type=int, default=3000, help="imitation optimizer steps")
-    p.add_argument("--threads", type=int, default=1, help="torch threads")
+    p.add_argument("--episodes", type=int, default=6, help="expert episodes per placement")
+    p.add_argument("--steps", type=int, default=8000, help="first imitation's optimizer steps")
+    p.add_argument(
+        "--final-steps", type=int, default=16000, help="steps of the imitation that ships"
+    )
+    p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--jobs", type=int, default=2, help="simulator processes for recording")
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args(argv)
-    work, py = Path(a.work), sys.executable
-    data, train = work / "expert", work / "il"
+    work, py = Path(a.work).resolve(), sys.executable
+    expert, takeovers = work / "expert", work / "takeovers"
+    il1, il2 = work / "il1", work / "il2"
 
-    for track in TRAIN_TRACKS:
-        if not (data / f".done-{track}").exists():
-            run([py, "-m", "carrt", "teleop", "--sim", "--expert", "auto", "--record",
-                 "--random-start", "--seed", str(track), "--layout", "hard", "--track-seed",
-                 str(track), "--episodes", str(a.episodes), "--laps", "1", "--out", str(data),
-                 "--duration", "100000"])  # fmt: skip
-            (data / f".done-{track}").touch()
-    run([py, str(ROOT / "training" / "iterate.py"), "--episodes", str(data), "--out", str(train),
-         "--profile", "cpu", "--seed", str(a.seed), "--set", f"imitation_steps={a.steps}",
-         "--set", "world_model_steps=0", "--set", "refine_steps=0",
-         "--set", f"threads={a.threads}", "--set", "progress=false"])  # fmt: skip
+    run([py, "-m", "training.sim_data", "demos", "--out", str(expert), "--tracks", DEMO_TRACKS,
+         "--layouts", LAYOUTS, "--episodes", str(a.episodes), "--jobs", str(a.jobs)],
+        work / ".done-demos")  # fmt: skip
+    run(imitation(py, [expert], il1, a, a.steps), il1 / ".done")
+    run([py, "-m", "training.sim_data", "interventions", "--model", str(il1 / "policy.onnx"),
+         "--out", str(takeovers), "--tracks", TAKEOVER_TRACKS, "--layouts", LAYOUTS,
+         "--seconds", "60", "--jobs", str(a.jobs)], work / ".done-takeovers")  # fmt: skip
+    run(imitation(py, [expert, takeovers], il2, a, a.final_steps), il2 / ".done")
     fp32 = work / "demo_policy.onnx"
-    run([py, "-m", "export", str(train / "policy.pt"), "-o", str(fp32), "--episodes", str(data),
-         "--int8"])  # fmt: skip
+    run([py, "-m", "export", str(il2 / "policy.pt"), "-o", str(fp32), "--episodes",
+         str(expert), "--int8"], work / ".done-export")  # fmt: skip
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(fp32.with_suffix(".int8.onnx"), out)
     print(f"wrote {out} ({out.stat().st_size:,} bytes)")
-    run([py, "-m", "carrt", "drive", "--sim", "--autopilot", "--model", str(out), "--layout",
-         "hard", "--track-seed", str(HELD_OUT_TRACK), "--duration", "60"])  # fmt: skip
+    run([py, "-m", "carrt", "eval", "--model", str(out), "--layout", "hard", "--tracks",
+         EVAL_TRACKS, "--seconds", "60", "--seeds", "0,1", "--jobs", str(a.jobs),
+         "--json", str(work / "eval.json")])  # fmt: skip
     return 0
 
 

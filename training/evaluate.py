@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from torch.utils.data import default_collate
 
+from training.data import take
 from training.losses import dirichlet_probability
 
 
@@ -63,7 +63,7 @@ def spread_indices(n: int, limit: int) -> np.ndarray:
 def _batches(dataset, limit: int, batch_size: int, device):
     idx = spread_indices(len(dataset), limit)
     for start in range(0, len(idx), batch_size):
-        batch = default_collate([dataset[int(i)] for i in idx[start : start + batch_size]])
+        batch = take(dataset, [int(i) for i in idx[start : start + batch_size]])
         yield {k: v.to(device) for k, v in batch.items()}
 
 
@@ -128,7 +128,7 @@ def world_model_metrics(a: dict) -> dict:
 
 @torch.no_grad()
 def imitation_metrics(policy, dataset, device, *, limit=2048, batch_size=64) -> dict:
-    """L1 between μ and a* over the held-out collision-free windows (the imitation loss)."""
+    """L1 between μ and a* over the held-out imitation targets (MANUAL, collision-free)."""
     if dataset is None or len(dataset) == 0:
         return {"imitation_windows": 0}
     policy.eval()
@@ -136,7 +136,9 @@ def imitation_metrics(policy, dataset, device, *, limit=2048, batch_size=64) -> 
     count = 0.0
     for batch in _batches(dataset, limit, batch_size, device):
         mu, _sigma = policy(batch["image"], batch["speed"])
-        mask = batch["mask"].unsqueeze(-1)
+        # The imitation targets: labelled steps (weight > 0), the episode's last one included.
+        w = batch.get("weight", batch["action_mask"])
+        mask = (w > 0).to(mu.dtype).unsqueeze(-1)
         total += ((mu - batch["expert_actions"]).abs() * mask).sum(dim=(0, 1)).cpu().numpy()
         count += float(mask.sum())
     return {
@@ -149,11 +151,12 @@ def imitation_metrics(policy, dataset, device, *, limit=2048, batch_size=64) -> 
 
 def evaluate(policy, world_model, episodes, profile, device, *, limit: int = 2048):
     """(metrics, arrays) on the given (held-out) episodes; arrays feed figures.py."""
-    from training.data import WindowDataset
+    from training.data import FrameStore, ImitationDataset, WindowDataset
 
     h, size = profile.horizon, profile.predict_size
-    windows = WindowDataset(episodes, h, predict_size=size)
-    free = WindowDataset(episodes, h, predict_size=size, collision_free_only=True)
+    store = FrameStore(episodes)
+    windows = WindowDataset(episodes, h, predict_size=size, store=store)
+    free = ImitationDataset(episodes, h, store=store)
     policy.to(device)
     world_model.to(device)
     arrays = collect_world_model(world_model, windows, device, limit=limit) if len(windows) else {}

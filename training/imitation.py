@@ -9,6 +9,12 @@ Two details matter and are easy to get wrong:
   and steps past an episode's end are masked, so the padding never becomes a target.
 σ is not trained here (L1 on μ says nothing about it); it keeps its floor-bounded initial value
 until refinement samples with it.
+
+Targets are a* of mode-MANUAL steps only (ImitationDataset's per-step `weight`): in AUTO the
+sticks are untouched and a* would be "do nothing". A person's take-over from the policy is
+MANUAL too, and its steps may weigh more (config intervention_weight). Frames are colour-
+jittered per sample (config augment, training/augment.py) because obstacle colours vary by
+placement.
 """
 
 from __future__ import annotations
@@ -17,8 +23,9 @@ from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
-from torch.utils.data import default_collate
 
+from training.augment import augment_images
+from training.data import take
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 
 if TYPE_CHECKING:
@@ -26,14 +33,21 @@ if TYPE_CHECKING:
 
 
 def imitation_loss(policy: nn.Module, batch: dict) -> tuple[torch.Tensor, dict]:
-    """Masked mean |μ − a*| over steps and both actions."""
+    """Weighted mean |μ − a*| over steps and both actions.
+
+    The per-step weight is the batch's `weight` (ImitationDataset: 0 where a* is no person's
+    command) or else its `action_mask` (1 where step t+k exists): a*_{t+k} is a target for
+    k < n − t, the episode's last action included (`mask`, the world model's t+1+k < n, would
+    drop it).
+    """
     mu, sigma = policy(batch["image"], batch["speed"])
     target = batch["expert_actions"].to(mu.dtype)
-    mask = batch["mask"].to(mu.dtype).unsqueeze(-1).expand_as(mu)
+    weight = batch.get("weight", batch["action_mask"])
+    mask = weight.to(mu.dtype).unsqueeze(-1).expand_as(mu)
     err = (mu - target).abs() * mask
-    denom = mask.sum().clamp(min=1.0)
-    steer = err[..., 0].sum() / (mask[..., 0].sum().clamp(min=1.0))
-    throttle = err[..., 1].sum() / (mask[..., 1].sum().clamp(min=1.0))
+    denom = mask.sum().clamp(min=1e-6)
+    steer = err[..., 0].sum() / (mask[..., 0].sum().clamp(min=1e-6))
+    throttle = err[..., 1].sum() / (mask[..., 1].sum().clamp(min=1e-6))
     # 0·Σσ keeps every parameter in the graph (σ is finite by construction), so
     # DistributedDataParallel needs no find_unused_parameters should σ get its own head.
     loss = err.sum() / denom + 0.0 * sigma.sum()
@@ -46,6 +60,7 @@ def spec_for(cfg: IterateConfig) -> StageSpec:
         steps=cfg.imitation_steps,
         batch_size=cfg.imitation_batch_size,
         lr=cfg.imitation_lr,
+        final_lr_fraction=cfg.imitation_lr_final,
         grad_clip=cfg.grad_clip,
         ckpt_every=cfg.ckpt_every,
         log_every=cfg.log_every,
@@ -63,11 +78,21 @@ def train_imitation(
     resume: dict | None = None,
     val_dataset=None,
 ) -> StageResult:
-    """Train `policy` in place on a collision-free WindowDataset; returns the loss history."""
+    """Train `policy` in place on an ImitationDataset (or a collision-free WindowDataset)."""
     ctx = ctx or RunContext()
     policy.to(ctx.dist.device)
 
     def loss_fn(model: nn.Module, batch: dict, step: int):
+        if cfg.augment:
+            # Seeded by (seed, step, rank): a resumed run draws the same jitter.
+            gen = torch.Generator().manual_seed(
+                (cfg.seed * 1_000_003 + step) * 1009 + ctx.dist.rank
+            )
+            image = augment_images(batch["image"].cpu(), gen, hue=cfg.augment_hue,
+                                   saturation=cfg.augment_saturation,
+                                   brightness=cfg.augment_brightness,
+                                   contrast=cfg.augment_contrast)  # fmt: skip
+            batch = {**batch, "image": image.to(batch["image"].device)}
         return imitation_loss(model, batch)
 
     val_fn = None
@@ -89,18 +114,25 @@ def train_imitation(
 
 @torch.no_grad()
 def held_out_l1(
-    policy: nn.Module, dataset, device, batch_size: int = 64, limit: int = 512
+    policy: nn.Module, dataset, device, batch_size: int = 256, limit: int = 512
 ) -> float:
-    """Imitation L1 over (up to `limit`) windows, in eval mode; restores the previous mode."""
+    """Imitation L1 over (up to `limit`) windows, in eval mode; restores the previous mode.
+
+    Unweighted over the labelled steps (weight > 0), so it reads as an L1 whatever the
+    intervention weight; without `weight`, over `action_mask`.
+    """
     was_training = policy.training
     policy.eval()
     total, count = 0.0, 0.0
     n = min(len(dataset), limit)
     for start in range(0, n, batch_size):
-        items = [dataset[i] for i in range(start, min(n, start + batch_size))]
-        batch = {k: v.to(device) for k, v in default_collate(items).items()}
+        batch = {
+            k: v.to(device)
+            for k, v in take(dataset, range(start, min(n, start + batch_size))).items()
+        }
         mu, _ = policy(batch["image"], batch["speed"])
-        mask = batch["mask"].to(mu.dtype).unsqueeze(-1).expand_as(mu)
+        w = batch.get("weight", batch["action_mask"])
+        mask = (w > 0).to(mu.dtype).unsqueeze(-1).expand_as(mu)
         total += float(((mu - batch["expert_actions"]).abs() * mask).sum())
         count += float(mask.sum())
     policy.train(was_training)

@@ -57,7 +57,7 @@ class IterateConfig:
     out: str = ""  # run directory: checkpoints, policy.pt, policy.onnx, report.md, figures
     init: str | None = None  # previous iteration's run directory (None: iteration 1)
     profile: str = "cpu"  # model sizes and presets: tiny (tests), cpu (a laptop), paper (GPU)
-    val_fraction: float = 0.1  # share of EPISODES held out for the report's metrics
+    val_fraction: float = 0.1  # share of PLACEMENTS held out (data.split_by_placement)
     seed: int = 0  # seeds model init, batch order and refinement noise
     device: str = "auto"  # auto (cuda if available), cpu, cuda, cuda:N
     num_workers: int = 0  # DataLoader worker processes per training process
@@ -66,6 +66,13 @@ class IterateConfig:
     imitation_steps: int = 20000  # optimizer steps (the paper gives none; our choice)
     imitation_batch_size: int = 128  # global batch (paper: 128)
     imitation_lr: float = 1e-3  # Adam (paper: 1e-3)
+    imitation_lr_final: float = 0.05  # cosine decay to lr·this at the last step (1: constant)
+    intervention_weight: float = 1.0  # weight of a* from a person's take-over in AUTO
+    augment: bool = False  # per-sample colour jitter of imitation frames (training/augment.py)
+    augment_hue: float = 0.5  # max hue rotation, share of a half turn (obstacle colours vary)
+    augment_saturation: float = 0.3  # max relative saturation change
+    augment_brightness: float = 0.2  # max brightness shift, share of full scale
+    augment_contrast: float = 0.2  # max relative contrast change
     # -- stage 2: world model (evidential image/speed regression + collision classification)
     world_model_steps: int = 30000  # optimizer steps (our choice)
     world_model_batch_size: int = 32  # global batch (paper: 32)
@@ -107,6 +114,7 @@ class IterateConfig:
         positive = [
             "imitation_batch_size", "world_model_batch_size", "refine_batch_size", "log_every",
             "imitation_lr", "world_model_lr", "refine_lr", "grad_clip", "uncertainty_clip",
+            "imitation_lr_final",
             "eval_windows",
         ]  # fmt: skip
         for name in positive:
@@ -114,7 +122,8 @@ class IterateConfig:
                 raise UsageError(f"{name} must be > 0, got {getattr(self, name)}")
         non_negative = [
             "imitation_steps", "world_model_steps", "refine_steps", "ckpt_every", "eval_every",
-            "stop_after", "num_workers", "collision_weight", "threads",
+            "stop_after", "num_workers", "collision_weight", "threads", "intervention_weight",
+            "augment_hue", "augment_saturation", "augment_brightness", "augment_contrast",
         ]  # fmt: skip
         for name in non_negative:
             if getattr(self, name) < 0:
@@ -129,9 +138,9 @@ PRESETS: dict[str, dict] = {
                  imitation_batch_size=16, world_model_batch_size=8, refine_batch_size=8,
                  refine_lr=1e-4, log_every=1, ckpt_every=10, eval_windows=256),
     "cpu": dict(imitation_steps=2000, world_model_steps=3000, refine_steps=500,
-                imitation_batch_size=32, world_model_batch_size=16, refine_batch_size=16,
-                log_every=10, ckpt_every=250, eval_every=250),
-    "paper": dict(num_workers=4, eval_every=1000),
+                imitation_batch_size=64, world_model_batch_size=32, refine_batch_size=16,
+                log_every=10, ckpt_every=250, eval_every=500, augment=True),
+    "paper": dict(eval_every=1000, augment=True),
 }  # fmt: skip
 
 SETTABLE = [f.name for f in dataclasses.fields(IterateConfig) if f.name not in ("episodes", "out")]
@@ -229,11 +238,13 @@ def _init_profile(init: str) -> str:
 def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
     """Train, export and report one iteration; returns a summary (also for non-zero ranks)."""
     from training.data import (
+        FrameStore,
+        ImitationDataset,
         WindowDataset,
         compute_normalisation,
         data_digest,
         load_episodes,
-        split_by_episode,
+        split_by_placement,
     )
     from training.imitation import train_imitation
     from training.models import PolicyNet, WorldModel
@@ -251,7 +262,7 @@ def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
         raise UsageError(
             f"no episodes with steps under {', '.join(cfg.episodes) or '(none given)'}"
         )
-    train_eps, val_eps = split_by_episode(episodes, cfg.val_fraction, cfg.seed)
+    train_eps, val_eps = split_by_placement(episodes, cfg.val_fraction, cfg.seed)
     digest = data_digest(train_eps)
 
     init_ckpt = init_wm = None
@@ -319,8 +330,11 @@ def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
         num_workers=cfg.num_workers,
     )
     h, size = profile.horizon, profile.predict_size
-    windows = WindowDataset(train_eps, h, predict_size=size)
-    val_windows = WindowDataset(val_eps, h, predict_size=size) if val_eps else None
+    # Every frame decoded once into RAM, shared by the stages' datasets (data.FrameStore).
+    store = FrameStore(train_eps)
+    val_store = FrameStore(val_eps) if val_eps else None
+    windows = WindowDataset(train_eps, h, predict_size=size, store=store)
+    val_windows = WindowDataset(val_eps, h, predict_size=size, store=val_store) if val_eps else None
     if len(windows) == 0:
         raise UsageError("no training windows: every training episode has fewer than 2 steps")
     results = {}
@@ -328,14 +342,17 @@ def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
         for stage in stages:
             resume = existing.get(stage)
             if stage == "imitation":
-                free = WindowDataset(train_eps, h, predict_size=size, collision_free_only=True)
+                iw = cfg.intervention_weight
+                free = ImitationDataset(train_eps, h, intervention_weight=iw, store=store)
                 val_free = (
-                    WindowDataset(val_eps, h, predict_size=size, collision_free_only=True)
+                    ImitationDataset(val_eps, h, intervention_weight=iw, store=val_store)
                     if val_eps
                     else None
                 )
                 if len(free) == 0 and cfg.imitation_steps > 0:
-                    raise UsageError("no collision-free windows in the training episodes")
+                    raise UsageError(
+                        "no collision-free MANUAL steps in the training episodes to imitate"
+                    )
                 results[stage] = train_imitation(
                     cfg, policy, free, ctx, resume=resume, val_dataset=val_free
                 )

@@ -8,6 +8,7 @@ exported into the ONNX graph, and no caller can normalise twice or forget to.
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -151,7 +152,13 @@ class _Normalised(nn.Module):
         """(N,96,96,3) uint8 and (N,1) m/s → concat(f_i, f_s) (N, 8·width + speed_features)."""
         if speed.dim() == 1:
             speed = speed.unsqueeze(-1)
-        f_i = self.backbone(self.normalise_image(image))
+        x = self.normalise_image(image)
+        size = self.profile.input_size
+        if x.shape[-1] != size or x.shape[-2] != size:
+            # Bilinear (an ONNX Resize at opset 17); a smaller backbone input is the cheapest
+            # speed-up on a CPU, and the graph's input stays the contract's 96×96 frame.
+            x = F.interpolate(x, size=(size, size), mode="bilinear", align_corners=False)
+        f_i = self.backbone(x)
         f_s = self.speed_net(self.normalise_speed(speed))
         return torch.cat([f_i, f_s], dim=-1)
 
@@ -163,7 +170,8 @@ def _speed_net(features: int) -> nn.Sequential:
 
 
 def clamp_actions(actions: Tensor) -> Tensor:
-    """Steering into [-1, 1], throttle into [0, 1] (carrt.model_contract's bounds)."""
+    """Steering and throttle into carrt.model_contract's bounds, both [-1, 1] (throttle < 0
+    brakes/reverses, as the demonstrator does)."""
     lo = actions.new_tensor(ACTION_LOW)
     hi = actions.new_tensor(ACTION_HIGH)
     return torch.maximum(torch.minimum(actions, hi), lo)
@@ -199,11 +207,14 @@ class PolicyNet(_Normalised):
             out.weight.mul_(0.1)
             bias = out.bias.view(profile.horizon, 4)
             bias.zero_()
+            bias[:, 1].fill_(math.atanh(0.5))
             bias[:, 2:].fill_(float(torch.log(torch.expm1(torch.tensor(0.2)))))
 
     def forward(self, image: Tensor, speed: Tensor) -> tuple[Tensor, Tensor]:
         out = self.head(self._encode(image, speed)).view(-1, self.horizon, 4)
-        mu = torch.stack([torch.tanh(out[..., 0]), torch.sigmoid(out[..., 1])], dim=-1)
+        # tanh on both: throttle spans [-1, 1] because the demonstrator brakes (~7 % of a*
+        # are negative); a sigmoid could never imitate, or refine towards, a brake.
+        mu = torch.tanh(out[..., :2])
         sigma = self.min_sigma + F.softplus(out[..., 2:])
         return mu, sigma
 

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
+from training.data import take
 from training.losses import dirichlet_probability
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 from training.world_training import Targets
@@ -170,9 +171,7 @@ def held_out_objective(
     n = min(len(dataset), limit)
     weights = (cfg.refine_w_speed, cfg.refine_w_collision, uncertainty_weight(cfg))
     for start in range(0, n, batch_size):
-        batch = torch.utils.data.default_collate(
-            [dataset[i] for i in range(start, min(n, start + batch_size))]
-        )
+        batch = take(dataset, range(start, min(n, start + batch_size)))
         image, speed = batch["image"].to(device), batch["speed"].to(device)
         mu, _sigma = policy(image, speed)
         imagined = imagine(world_model, targets, image, speed, mu, cfg.uncertainty_clip)

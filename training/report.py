@@ -42,7 +42,7 @@ def finish_run(
     cfg, out: Path, *, policy, world_model, norm, train_eps, val_eps, episodes, digest,
     results, iteration, device, writer=None, world_size=1,
 ) -> dict:  # fmt: skip
-    from training.data import WindowDataset
+    from training.data import WindowDataset, placement_key
 
     held_out = bool(val_eps)
     eval_eps = val_eps if held_out else train_eps
@@ -85,6 +85,8 @@ def finish_run(
         "frames": int(sum(ep.n for ep in episodes)),
         "train_episodes": [ep.name for ep in train_eps],
         "held_out_episodes": [ep.name for ep in val_eps],
+        "train_placements": len({placement_key(ep) for ep in train_eps}),
+        "held_out_placements": sorted({placement_key(ep) for ep in val_eps}),
         "train_frames": int(sum(ep.n for ep in train_eps)),
         "held_out_frames": int(sum(ep.n for ep in val_eps)),
         "collision_frames": int(sum(int(ep.collision.sum()) for ep in episodes)),
@@ -116,9 +118,10 @@ def render(cfg, r: dict, export_lines: list[str]) -> str:
         "",
         f"- episodes: {d['episodes']} ({d['frames']} frames; {d['collision_frames']} frames "
         "labelled collision)",
-        f"- split by episode: {len(d['train_episodes'])} train ({d['train_frames']} frames), "
-        f"{len(d['held_out_episodes'])} held out ({d['held_out_frames']} frames): "
-        f"{', '.join(d['held_out_episodes']) or '—'}",
+        f"- split by placement: {len(d['train_episodes'])} train episodes "
+        f"({d.get('train_placements', '?')} placements, {d['train_frames']} frames), "
+        f"{len(d['held_out_episodes'])} held out ({d['held_out_frames']} frames) on "
+        f"{', '.join(d.get('held_out_placements', [])) or '—'}",
         f"- training data digest: `{d['train_digest']}`",
         "",
         "## Stages",

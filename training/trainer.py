@@ -14,6 +14,7 @@ only rank 0 writes checkpoints, TensorBoard scalars and progress bars.
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import threading
@@ -175,6 +176,16 @@ class StageSpec:
     seed: int
     eval_every: int = 0  # steps between held-out evaluations (0: never)
     train_mode: bool = True  # False: the trained module stays in eval() (BatchNorm frozen)
+    final_lr_fraction: float = 1.0  # cosine decay to lr·this at the last step (1: constant)
+
+    def lr_at(self, step: int) -> float:
+        """The learning rate of optimizer step `step` (0-based): a function of the step alone,
+        so a resumed run continues on the same schedule without saving a scheduler."""
+        if self.final_lr_fraction >= 1.0 or self.steps <= 1:
+            return self.lr
+        progress = min(1.0, step / (self.steps - 1))
+        cosine = 0.5 * (1.0 + math.cos(math.pi * progress))
+        return self.lr * (self.final_lr_fraction + (1.0 - self.final_lr_fraction) * cosine)
 
 
 @dataclass
@@ -190,12 +201,15 @@ class StageResult:
         return self.samples / self.seconds if self.seconds > 0 else float("nan")
 
     def final(self, last: int = 10) -> dict[str, float]:
-        """Mean of each scalar over the last few logged steps (one step is too noisy)."""
-        tail = [h for h in self.history if "loss" in h][-last:]
-        keys = {k for h in tail for k in h if k != "step"}
-        return (
-            {k: sum(h[k] for h in tail if k in h) / len(tail) for k in sorted(keys)} if tail else {}
-        )
+        """Mean of each scalar over its last few logged values (one step is too noisy)."""
+        out: dict[str, float] = {}
+        keys = {k for h in self.history for k in h if k != "step"}
+        for k in sorted(keys):
+            # Per key: validation scalars are logged every eval_every steps only, and must be
+            # averaged over the entries that have them, not over every logged step.
+            tail = [h[k] for h in self.history if k in h][-last:]
+            out[k] = sum(tail) / len(tail)
+        return out
 
 
 def to_device(batch: dict, device: torch.device) -> dict:
@@ -216,10 +230,18 @@ def batches(
     )
     per_epoch = max(1, len(sampler) // per_rank)
     epoch, offset = divmod(start_step, per_epoch)
+    gather = getattr(dataset, "get_batch", None)
     while True:
         sampler.set_epoch(epoch)
         order = list(sampler)
         chunks = [order[i * per_rank : (i + 1) * per_rank] for i in range(per_epoch)][offset:]
+        if gather is not None:
+            # Frames in RAM: one tensor gather per batch beats a DataLoader's per-item calls,
+            # and workers would each hold a copy of every frame (num_workers is ignored).
+            for chunk in chunks:
+                yield gather(chunk)
+            epoch, offset = epoch + 1, 0
+            continue
         loader = DataLoader(
             dataset,
             batch_sampler=chunks,
@@ -300,12 +322,15 @@ def run_stage(
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 grad_norm = nn.utils.clip_grad_norm_(params, spec.grad_clip)
+                lr = spec.lr_at(step)
+                for group in optimizer.param_groups:
+                    group["lr"] = lr
                 optimizer.step()
                 done = result.steps = step + 1
                 result.samples += len(batch["speed"]) * ctx.dist.world_size
                 evaluate = val_fn is not None and spec.eval_every and done % spec.eval_every == 0
                 if evaluate or done % spec.log_every == 0 or done == spec.steps:
-                    scalars = {"loss": loss.item(), "grad_norm": float(grad_norm)}
+                    scalars = {"loss": loss.item(), "grad_norm": float(grad_norm), "lr": lr}
                     scalars.update({k: float(v) for k, v in metrics.items()})
                     scalars = _mean_across(scalars, ctx.dist)  # same steps on every rank
                     if evaluate and ctx.dist.is_main:

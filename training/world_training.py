@@ -17,8 +17,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 from torch import nn
-from torch.utils.data import default_collate
 
+from training.data import take
 from training.losses import evidential_classification_loss, evidential_regression_loss
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 
@@ -167,8 +167,8 @@ def held_out_loss(model, dataset, targets, weights, device, batch_size=32, limit
     batches = 0
     n = min(len(dataset), limit)
     for start in range(0, n, batch_size):
-        items = [dataset[i] for i in range(start, min(n, start + batch_size))]
-        batch = {k: v.to(device) for k, v in default_collate(items).items()}
+        items = range(start, min(n, start + batch_size))
+        batch = {k: v.to(device) for k, v in take(dataset, items).items()}
         loss, metrics = world_model_loss(model, batch, targets, **weights)
         for k, v in {"loss": loss, **metrics}.items():
             sums[k] = sums.get(k, 0.0) + float(v)

@@ -6,6 +6,11 @@ saturate, and a kinematic model stays stable at any step size, where a dynamic t
 saturation, so it is added explicitly: past the grip limit the yaw rate is capped at what the
 tyres can give (the car understeers wide) and the slide scrubs speed.
 
+Steering follows the protocol: command −1 (a `steer_left_us` pulse) is full LEFT lock, which in
+the arena's x-right/y-up frame is a counter-clockwise turn (positive yaw rate). `CarState.steer`
+is the physical front-wheel angle, positive to the left like yaw, so it is minus the command's
+sign; only `step_car` converts between the two.
+
 The reference point is the rear axle's centre (where a kinematic bicycle's velocity points
 along the heading); the body extends `rear_overhang` behind it.
 
@@ -65,15 +70,16 @@ def step_car(
 ) -> CarState:
     """Advance the car by dt seconds holding the commands (both clipped to [-1, 1]).
 
-    steering_cmd +1 is full left lock. throttle_cmd > 0 drives forward; < 0 brakes while rolling
-    forward and drives in reverse once stopped (a car ESC's brake-then-reverse).
+    steering_cmd −1 is full left lock (the protocol's sign; +1 full right). throttle_cmd > 0
+    drives forward; < 0 brakes while rolling forward and drives in reverse once stopped (a car
+    ESC's brake-then-reverse).
     """
     if dt <= 0:
         return _copy(state, sliding=state.sliding)
     p = params
     n = max(1, math.ceil(dt / p.max_substep - 1e-9))
     h = dt / n
-    steer_target = _clip(steering_cmd) * p.max_steer
+    steer_target = -_clip(steering_cmd) * p.max_steer  # command −1 (left) → wheels left (+)
     motor_target = _clip(throttle_cmd)
     k_steer = 1.0 - math.exp(-h / p.steer_tau) if p.steer_tau > 0 else 1.0
     k_motor = 1.0 - math.exp(-h / p.motor_tau) if p.motor_tau > 0 else 1.0

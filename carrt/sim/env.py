@@ -1,7 +1,8 @@
 """The simulator as a gymnasium environment, so off-the-shelf RL libraries can drive it.
 
 Observation and action are the paper's: a 96×96 RGB frame plus the speed; steering in
-[-1, 1] and throttle in [0, 1], held for one 10 Hz control period. Reward is metres gained
+[-1, 1] (−1 full left, as the protocol and a real car's `steer_left_us`) and throttle in
+[0, 1], held for one 10 Hz control period. Reward is metres gained
 along the track (negative when going backwards), minus a penalty on collision; a collision
 ends the episode as in the paper, and a run is cut after `max_laps` laps or `max_steps` steps.
 

@@ -144,8 +144,8 @@ class ScriptedExpert:
         tx, ty = ahead[j, 0] - x, ahead[j, 1] - y
         alpha = math.atan2(ty, tx) - yaw
         reach = max(float(dist[j]), 1e-3)
-        steer = math.atan2(2 * p.wheelbase * math.sin(alpha), reach)
-        steering = max(-1.0, min(1.0, steer / p.max_steer))
+        steer = math.atan2(2 * p.wheelbase * math.sin(alpha), reach)  # wheel angle, + left
+        steering = max(-1.0, min(1.0, -steer / p.max_steer))  # the protocol's −1 is left
         # the slowest speed needed over the distance the motor takes to respond
         preview = max(1, round((0.1 + max(v, 0.0) * (p.motor_tau + self.latency)) / self._step))
         v_ref = float(np.min(self.speed_profile[(i + np.arange(preview)) % self._n]))

@@ -118,6 +118,7 @@ class KeyboardPad:
 
     def _ramp(self, dt: float) -> None:
         with self._lock:
+            # the protocol's sign: Left is −1 (steer_left_us), Right +1
             steer_target = ("right" in self._held) - ("left" in self._held)
             throttle_target = ("up" in self._held) - ("down" in self._held)
             self._steering = _towards(self._steering, steer_target, RAMP_PER_S * dt)

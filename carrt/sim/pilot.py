@@ -5,6 +5,13 @@ stands still, drives it (with the scripted expert's sticks) or hands it to the p
 and after a collision resets the car onto the track, clears the e-stop and starts again. It
 goes through the same arbitration and the same board as a person would: it only presses
 buttons and moves sticks.
+
+With intervene=True it is also the safety driver of the paper's interventions: while the policy
+drives in AUTO and a collision is imminent (carrt.sim.lookahead), it moves the sticks to the
+expert's command. The arbiter sees sticks moved in AUTO and hands over (MANUAL, the step
+flagged `override`, the expert's sticks recorded as a* and executed); the pilot keeps driving
+for at least INTERVENE_HOLD_S and until nothing is ahead, then centres the sticks and hands back
+to AUTO. The policy thus gets labels in states it reached itself.
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ import numpy as np
 from carrt.interfaces import JoystickEvents, JoystickState, Mode
 
 SETTLE_S = 0.5  # wait after a reset or a clear before the next press, as a person would
+INTERVENE_HOLD_S = 1.0  # a safety driver who takes over keeps the sticks at least this long
 
 
 @dataclass
@@ -25,6 +33,7 @@ class PilotLog:
     episodes: int = 0
     collisions: int = 0
     laps: int = 0
+    interventions: int = 0  # takeovers from the policy (intervene=True)
 
 
 class SimPilot:
@@ -40,6 +49,7 @@ class SimPilot:
         random_start: bool = False,
         expert_noise: float = 0.0,
         seed: int = 0,
+        intervene: bool = False,
     ) -> None:
         self.plant = plant
         self.clock = clock
@@ -58,6 +68,9 @@ class SimPilot:
         self.expert_noise = float(expert_noise)
         self._rng = np.random.default_rng(seed)
         self._placed = False
+        self.intervene = intervene and expert is not None
+        self._taking_over = False
+        self._hold_until = 0.0
 
     # Joystick interface ------------------------------------------------------------
     def start(self, on_estop: Callable[[], None]) -> None:
@@ -80,6 +93,8 @@ class SimPilot:
             sticks = (0.0, 0.0)
             if mode == Mode.MANUAL and self.expert is not None and not self.engage_auto:
                 sticks = self._imperfect(self.expert.act(state))
+            elif self.intervene:
+                sticks = self._safety_driver(mode, now, state)
         events = self._decide(mode, now, laps)
         if new_lap:
             events = replace(events, lap=True)
@@ -100,6 +115,27 @@ class SimPilot:
             return sticks
         noisy = np.clip(np.asarray(sticks) + self._rng.normal(0.0, self.expert_noise, 2), -1, 1)
         return float(noisy[0]), float(noisy[1])
+
+    def _safety_driver(self, mode: Mode, now: float, state) -> tuple[float, float]:
+        """The expert's sticks while taking over from the policy, else centred sticks."""
+        from carrt.sim.lookahead import collision_ahead
+
+        if mode == Mode.AUTO and not self._taking_over:
+            if not collision_ahead(self.plant.world):
+                return 0.0, 0.0
+            self._taking_over = True
+            self._hold_until = now + INTERVENE_HOLD_S
+            self.log.interventions += 1
+        elif mode == Mode.MANUAL and self._taking_over:
+            if now >= self._hold_until and not collision_ahead(self.plant.world):
+                self._taking_over = False  # centred sticks now; _decide hands back to AUTO
+                return 0.0, 0.0
+        else:
+            return 0.0, 0.0
+        steering, throttle = self.expert.act(state)
+        if steering == 0.0 and throttle == 0.0:
+            throttle = -1e-3  # centred sticks would not register as a takeover
+        return steering, throttle
 
     def _place_randomly(self) -> None:
         """Carry the resting car to a random clear place on the track, facing the racing
@@ -122,6 +158,8 @@ class SimPilot:
             self._pick_up = False
             with self.plant.lock:  # where it is now, not a physics step later
                 self.plant.reset(self.plant.world.s)
+        if new in (Mode.ESTOP, Mode.DISARMED):
+            self._taking_over = False
         if new == Mode.ESTOP:
             self.log.episodes += 1
             if self.plant.world.collided:
@@ -148,6 +186,6 @@ class SimPilot:
             self.log.laps += driving_laps
             self._laps_at_arm = laps
             return JoystickEvents(arm=True)  # disarm: this episode is complete
-        if mode == Mode.MANUAL and self.engage_auto:
+        if mode == Mode.MANUAL and self.engage_auto and not self._taking_over:
             return JoystickEvents(toggle_auto=True)
         return JoystickEvents()

@@ -87,7 +87,9 @@ def open_sim_rig(
 
     pilot = None
     if scripted:
-        expert = None if driving else ScriptedExpert(world.track, world.params)
+        intervene = driving and getattr(args, "expert_intervene", False)
+        wants_expert = not driving or intervene
+        expert = ScriptedExpert(world.track, world.params) if wants_expert else None
         pilot = SimPilot(
             plant,
             clock,
@@ -98,6 +100,7 @@ def open_sim_rig(
             random_start=getattr(args, "random_start", False),
             expert_noise=getattr(args, "expert_noise", 0.0),
             seed=args.seed,
+            intervene=intervene,
         )
         joystick: Any = pilot
     elif getattr(args, "pad", False):
@@ -134,7 +137,11 @@ def _finish(args: argparse.Namespace, world: Any, tracker: Tracker, summary: Any
 
     del summary
     result = metrics.run_metrics(world.track, tracker.recorder)
-    print(metrics.format_metrics(result))
+    on_metrics = getattr(args, "on_metrics", None)  # `carrt eval` collects, it does not print
+    if on_metrics is not None:
+        on_metrics(result, tracker.recorder)
+    else:
+        print(metrics.format_metrics(result))
     label = f"{args.layout}-s{args.track_seed}"
     if getattr(args, "out", None):
         out = Path(args.out)

@@ -19,7 +19,9 @@ import numpy as np
 
 from carrt.sim.types import Obstacle, Track
 
-LAYOUTS = {"empty": 0, "easy": 2, "hard": 8}
+# obstacles per placement: a fixed count, or (low, high) drawn per seed. "mixed" is the paper's
+# training setting (random positions, colours AND numbers); "hard" stays fixed for evaluation.
+LAYOUTS: dict[str, int | tuple[int, int]] = {"empty": 0, "easy": 2, "hard": 8, "mixed": (4, 10)}
 
 TRACK_WIDTH = 0.8
 SAMPLE_SPACING = 0.02  # centerline sampling, metres
@@ -45,13 +47,17 @@ _BLEND = 0.5  # curvature blending window (Hann), metres
 
 
 def build_track(layout: str = "easy", seed: int = 0) -> Track:
-    """The fixed circuit with `LAYOUTS[layout]` obstacles drawn from `seed`."""
+    """The fixed circuit with `LAYOUTS[layout]` obstacles drawn from `seed` (positions, sizes
+    and vivid colours always; for a (low, high) layout also the count, uniform in [low, high])."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}; valid layouts: {', '.join(LAYOUTS)}")
     centerline, racing_line, length = _base_geometry()
     rng = np.random.default_rng([int(seed) % 2**32, list(LAYOUTS).index(layout)])
     base = Track(layout, int(seed), centerline, TRACK_WIDTH, racing_line, length=length)
-    obstacles = _place_obstacles(base, LAYOUTS[layout], rng)
+    count = LAYOUTS[layout]
+    if isinstance(count, tuple):
+        count = int(rng.integers(count[0], count[1] + 1))
+    obstacles = _place_obstacles(base, count, rng)
     return Track(
         layout, int(seed), centerline, TRACK_WIDTH, racing_line, obstacles=obstacles, length=length
     )

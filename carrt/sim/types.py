@@ -36,7 +36,7 @@ class Track:
     sampled densely (every few centimetres) so consumers can treat them as curves.
     """
 
-    name: str  # layout name: "empty", "easy" or "hard"
+    name: str  # layout name: "empty", "easy", "hard" or "mixed"
     seed: int
     centerline: np.ndarray  # (N, 2) float64
     width: float  # drivable width in metres (boundary markings at ±width/2)
@@ -60,7 +60,7 @@ class CarState:
     yaw: float
     v: float = 0.0  # forward speed
     yaw_rate: float = 0.0
-    steer: float = 0.0  # front wheel angle actually reached (servo lag)
+    steer: float = 0.0  # front wheel angle reached (servo lag), + left (CCW), = −command
     motor: float = 0.0  # drive command actually reached (ESC/motor lag), [-1, 1]
     sliding: bool = False  # asked for more lateral grip than the tyres have
     odometer: float = 0.0  # wheel distance travelled (drives the encoder)

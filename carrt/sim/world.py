@@ -5,8 +5,16 @@ clips a bucket with a front corner has crashed, and a policy trained on centre-p
 would learn to cut that close. Leaving the track's markings is allowed (the paper's car could
 run wide); only the fence and the obstacles stop it.
 
-After a collision the car stands where it hit until reset(), which, like the paper's auto-reset,
-puts it back on the centerline a little before the last place it was safe.
+After a collision the car stands where it hit until reset(), which does what a person does when
+they lift a crashed car back on: it sets it down at rest on the centerline, heading along the
+track, just past what it hit (its tail `RESET_AHEAD` beyond the obstacle's far edge), at the
+first place there where its body is clear of every obstacle and the fence by a margin. Putting
+it back behind the obstacle (the old rule) made the car re-crash into the same bucket from rest.
+
+The metres a reset skips forward are not driven: they are kept in `skipped` and laps are
+counted on `progress - skipped`, so a crash never brings a lap closer. Completion ratio is
+unaffected either way (it stops at the first failure), and the metrics' distance ignores
+teleports.
 """
 
 from __future__ import annotations
@@ -17,12 +25,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from carrt.sim.car import CarParams, footprint, step_car
-from carrt.sim.track import build_track, geometry, pose_at
+from carrt.sim.track import build_track, geometry, pose_at, project
 from carrt.sim.types import CarState, Track
 
 MAX_SUBSTEP = 0.01  # collision checks at least every 10 ms (2.5 cm at top speed)
-RESET_BACK = 0.5  # auto-reset puts the car this far before the last safe arc position
-RESET_CLEARANCE = 0.08  # and keeps stepping back until its body is this far from obstacles
+RESET_AHEAD = 0.3  # auto-reset sets the car's tail this far past the far edge of what it hit
+RESET_CLEARANCE = 0.15  # and moves on until its body is this far from every obstacle
+RESET_FENCE_CLEARANCE = 0.1  # and from the fence
+RESET_STEP = 0.05  # search step along the track, metres
 
 
 @dataclass(frozen=True)
@@ -62,6 +72,7 @@ class SimWorld:
         self.laps = 0
         self.collisions = 0  # collisions since construction
         self.resets = 0
+        self.skipped = 0.0  # metres auto-resets carried the car forward (not credited as laps)
         self._locator = Locator(self.track)
         self._obstacles = [(o.x, o.y, o.radius) for o in self.track.obstacles]
         self.car = CarState(*pose_at(self.track, 0.0))
@@ -107,21 +118,51 @@ class SimWorld:
         return StepInfo(self.collided, self.collided_with, lap, self.off_track)
 
     def reset(self, s: float | None = None) -> None:
-        """Put the car back on the centerline at rest: at s, or a little before it last was safe.
+        """Put the car back on the centerline at rest, heading along the track: at s, or (the
+        auto-reset) where a person would set it down: `reset_place()`.
 
         Laps, time and the odometer carry on (the paper's reset is a pause, not a new run).
         """
-        if s is None:
-            s = self.clear_place_before(self.last_safe_s - RESET_BACK)
+        auto = s is None
+        if auto:
+            s = self.reset_place()
         self.resets += 1
+        before = self.progress
         self._place(float(s))
+        if auto:
+            self.skipped += max(self.progress - before, 0.0)
+
+    def reset_place(self) -> float:
+        """Where the auto-reset sets the car down (an arc position, possibly ≥ track length).
+
+        From where it was last safe, past the obstacle it hit (if it hit one ahead of it), on
+        to the first place clear of every obstacle and the fence (`clear_place_after`).
+        """
+        start = self.last_safe_s
+        hit = self._obstacle_hit()
+        if hit is not None:
+            length = self.track.length
+            s_o = project(self.track, hit.x, hit.y)[0]
+            ahead = (s_o - start + length / 2) % length - length / 2
+            if ahead > -hit.radius - self.params.length:  # beside or ahead: go past it
+                start += ahead + hit.radius + RESET_AHEAD + self.params.rear_overhang
+        return self.clear_place_after(start)
+
+    def clear_place_after(self, s: float) -> float:
+        """The first arc position at or after s where a car at rest on the centerline is clear
+        of every obstacle by RESET_CLEARANCE and of the fence by RESET_FENCE_CLEARANCE."""
+        for _ in range(math.ceil(self.track.length / RESET_STEP)):
+            if self._clear_at(s):
+                return s
+            s += RESET_STEP
+        return s
 
     def clear_place_before(self, s: float) -> float:
-        """The first arc position at or behind s where a car at rest clears every obstacle."""
-        for _ in range(40):  # a bucket right behind the crash site: keep backing off
-            if self._clearance_at(s) >= RESET_CLEARANCE:
-                break
-            s -= 0.1
+        """The first arc position at or behind s where a car at rest is clear (as above)."""
+        for _ in range(math.ceil(self.track.length / RESET_STEP)):
+            if self._clear_at(s):
+                return s
+            s -= RESET_STEP
         return s
 
     # -- internals -------------------------------------------------------------------------
@@ -155,7 +196,7 @@ class SimWorld:
         length = self.track.length
         s = self._locate()
         self.progress += (s - self.s + length / 2) % length - length / 2
-        if self.progress >= (self.laps + 1) * length:
+        if self.progress - self.skipped >= (self.laps + 1) * length:
             self.laps += 1
             return True
         return False
@@ -175,10 +216,25 @@ class SimWorld:
                 return "obstacle"
         return ""
 
-    def _clearance_at(self, s: float) -> float:
+    def _clear_at(self, s: float) -> bool:
         probe = CarState(*pose_at(self.track, s))
         gaps = [_distance_to_body(probe, self.params, ox, oy) - r for ox, oy, r in self._obstacles]
-        return min(gaps, default=math.inf)
+        if min(gaps, default=math.inf) < RESET_CLEARANCE:
+            return False
+        width, height = self.track.arena
+        m = RESET_FENCE_CLEARANCE
+        return all(
+            m <= x <= width - m and m <= y <= height - m for x, y in footprint(probe, self.params)
+        )
+
+    def _obstacle_hit(self):
+        """The obstacle the car stands against after an obstacle collision, else None."""
+        if not (self.collided and self.collided_with == "obstacle") or not self.track.obstacles:
+            return None
+        return min(
+            self.track.obstacles,
+            key=lambda o: _distance_to_body(self.car, self.params, o.x, o.y) - o.radius,
+        )
 
 
 class Locator:

@@ -1,0 +1,114 @@
+"""`carrt eval`: drive a policy over simulated placements and print the paper's table.
+
+Only the parser and the checks of what the user typed live here: the simulator (and
+onnxruntime) are imported when the command runs, so a real car's start-up never loads them.
+
+    carrt eval --model policy.onnx --layout hard --tracks 100-104 --seconds 60 --seeds 0,1
+    carrt eval --expert --tracks 100-104            # the scripted expert's baseline
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+from carrt.errors import UserError
+
+LAYOUTS = ("empty", "easy", "hard", "mixed")  # carrt.sim.track.LAYOUTS, without importing it
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "eval",
+        help="drive a policy on simulated placements (fast, auto-reset) and print the paper's "
+        "table: completion, collisions/min, average speed, laps (mean ± std)",
+    )
+    who = parser.add_mutually_exclusive_group(required=True)
+    who.add_argument("--model", help="policy .onnx to evaluate")
+    who.add_argument("--expert", action="store_true", help="evaluate the scripted expert")
+    parser.add_argument("--layout", default="hard", choices=LAYOUTS)
+    parser.add_argument(
+        "--tracks", default="100-104", help="placement seeds: ranges and lists, e.g. 100-104,120"
+    )
+    parser.add_argument("--seconds", default="60", help="simulated seconds per run (default 60)")
+    parser.add_argument("--seeds", default="0", help="run seeds (camera phase), e.g. 0,1,2")
+    parser.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
+    parser.add_argument(
+        "--expert-intervene",
+        action="store_true",
+        help="let the scripted expert take over before collisions (measures the policy with "
+        "a safety driver)",
+    )
+    parser.add_argument("--json", help="also write per-run and aggregate numbers here")
+    parser.set_defaults(func=run_eval)
+
+
+def parse_int_list(text: str, what: str) -> list[int]:
+    """'100-104,120' → [100, 101, 102, 103, 104, 120]; anything else is a UserError."""
+    out: list[int] = []
+    for part in str(text).split(","):
+        part = part.strip()
+        try:
+            if "-" in part[1:]:
+                lo, hi = (int(p) for p in part.split("-", 1))
+                if hi < lo:
+                    raise ValueError
+                out.extend(range(lo, hi + 1))
+            else:
+                out.append(int(part))
+        except ValueError:
+            raise UserError(
+                f"--{what}: {text!r} is not a list of numbers and ranges like 100-104,120"
+            ) from None
+    if any(v < 0 for v in out):
+        raise UserError(f"--{what}: seeds are >= 0, got {text!r}")
+    return out
+
+
+def _positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise UserError(f"--seconds: expected a finite number > 0, got {text!r}")
+    return value
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    tracks = parse_int_list(args.tracks, "tracks")
+    seeds = parse_int_list(args.seeds, "seeds")
+    seconds = _positive_seconds(args.seconds)
+    if args.jobs < 1:
+        raise UserError(f"--jobs: expected at least 1, got {args.jobs}")
+    model = None
+    if args.model is not None:
+        path = Path(args.model)
+        if not path.is_file():
+            raise UserError(f"model {path}: no such file")
+        from carrt.policy import OnnxPolicy
+
+        OnnxPolicy(path)  # refuses a model that breaks the contract, once, before any run
+        model = str(path)
+    if args.expert_intervene and model is None:
+        raise UserError(
+            "--expert-intervene needs --model (the expert cannot take over from itself)"
+        )
+    from carrt.sim.evaluate import evaluate, format_table
+
+    label = "scripted expert" if model is None else Path(model).name
+    runs = len(tracks) * len(seeds)
+    print(
+        f"carrt eval: {label} on {args.layout} placements {args.tracks}, seeds {args.seeds}: "
+        f"{runs} run(s) of {seconds:g} simulated s, auto-reset after collisions"
+    )
+    result = evaluate(
+        model, args.layout, tracks, seconds, seeds, args.jobs, intervene=args.expert_intervene
+    )
+    print(format_table(result, label))
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+        print(f"numbers written to {args.json}")
+    return 0

@@ -1,0 +1,39 @@
+"""training.sim_data: simulator recordings over many placements, in parallel and resumable,
+never on the evaluation placements."""
+
+from __future__ import annotations
+
+import pytest
+
+from carrt.episodes.reader import list_episodes, read_episode
+from carrt.errors import UserError
+from training import sim_data
+
+
+def test_tracks_parse_ranges_and_refuse_the_evaluation_placements():
+    assert sim_data.parse_tracks("1000-1002,7, 5-5") == [5, 7, 1000, 1001, 1002]
+    for bad in ("", "3-1", "a-b"):
+        with pytest.raises(UserError):
+            sim_data.parse_tracks(bad)
+    with pytest.raises(UserError, match=r"\[100, 101\] are held out"):
+        sim_data.parse_tracks("95-101")
+
+
+def test_demos_record_each_placement_once_on_both_layouts(tmp_path):
+    out = tmp_path / "expert"
+    argv = ["demos", "--out", str(out), "--tracks", "1000-1001", "--layouts", "mixed,hard",
+            "--episodes", "1", "--jobs", "2"]  # fmt: skip
+    assert sim_data.main(argv) == 0
+    episodes = [read_episode(p) for p in list_episodes([str(out)])]
+    assert len(episodes) == 2 and all(ep.n > 20 for ep in episodes)
+    placements = sorted((ep.meta["sim"]["layout"], ep.meta["sim"]["track_seed"]) for ep in episodes)
+    assert placements == [("hard", 1001), ("mixed", 1000)]
+    # Resumed: every placement has its marker, nothing is recorded again.
+    assert sim_data.main(argv) == 0
+    assert len(list_episodes([str(out)])) == 2
+
+
+def test_interventions_need_a_model(tmp_path, capsys):
+    argv = ["interventions", "--out", str(tmp_path), "--model", str(tmp_path / "none.onnx")]
+    assert sim_data.main(argv) == 2
+    assert "no such model" in capsys.readouterr().err

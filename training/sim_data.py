@@ -1,0 +1,179 @@
+"""Training data from the simulator at scale: many obstacle placements, both cores busy.
+
+    python -m training.sim_data demos --out data/expert --tracks 1000-1149 --jobs 2
+    python -m training.sim_data interventions --model policy.onnx --out data/iter1 \
+        --tracks 1000-1149
+
+Each placement is one run of the project's own recording command, exactly what a user types:
+`carrt teleop --sim --expert auto --record` for demonstrations (the scripted expert drives from
+random places at rest, with the loop's noise injection half of the time so the recordings hold
+recoveries), and `carrt drive --sim --autopilot --expert-intervene --record` for the next
+iteration's data (the policy drives; the expert, playing the person with the pad, takes over
+before a collision, and its commands label states the policy itself reached). Only episodes
+are training data, as on a real car; the simulator's saved trajectories (sim-runs/) are for
+evaluation.
+
+Runs go to a process pool (one process per core); a finished placement leaves a marker, so an
+interrupted call resumes where it stopped. Placements must not overlap the evaluation ones
+(the `hard` layout's 100-104): `parse_tracks` refuses them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import multiprocessing
+import sys
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from carrt.episodes.reader import list_episodes, read_episode
+from carrt.errors import EXIT_USAGE, UserError
+
+EVALUATION_TRACKS = frozenset(range(100, 105))  # held out: never recorded for training
+
+
+@dataclass(frozen=True)
+class Job:
+    """One placement's recording: the carrt argv, where it logs, and its done-marker."""
+
+    argv: tuple[str, ...]
+    log: Path
+    marker: Path
+
+
+def parse_tracks(text: str) -> list[int]:
+    """'1000-1149' or '1,2,5-7' → sorted unique placement seeds, never an evaluation one."""
+    tracks: set[int] = set()
+    try:
+        for part in filter(None, (p.strip() for p in text.split(","))):
+            lo, _, hi = part.partition("-")
+            first, last = int(lo), int(hi or lo)
+            if last < first:
+                raise ValueError(part)
+            tracks.update(range(first, last + 1))
+    except ValueError as exc:
+        raise UserError(f"bad --tracks {text!r}: use e.g. 1000-1149 or 1,2,5-7") from exc
+    if not tracks:
+        raise UserError("--tracks names no placement")
+    held_out = sorted(tracks & EVALUATION_TRACKS)
+    if held_out:
+        raise UserError(f"placements {held_out} are held out for evaluation: not for training")
+    return sorted(tracks)
+
+
+def layout_for(index: int, layouts: list[str]) -> str:
+    """Placements take the layouts in turn, so each layout gets every kind of seed."""
+    return layouts[index % len(layouts)]
+
+
+def demo_jobs(out: Path, tracks: list[int], layouts: list[str], episodes: int) -> list[Job]:
+    jobs = []
+    for i, track in enumerate(tracks):
+        layout = layout_for(i, layouts)
+        argv = ("teleop", "--sim", "--expert", "auto", "--record", "--random-start",
+                "--seed", str(track), "--layout", layout, "--track-seed", str(track),
+                "--episodes", str(episodes), "--laps", "1", "--out", str(out),
+                "--duration", "100000")  # fmt: skip
+        jobs.append(Job(argv, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}"))
+    return jobs
+
+
+def intervention_jobs(
+    out: Path, model: Path, tracks: list[int], layouts: list[str], seconds: float
+) -> list[Job]:
+    jobs = []
+    for i, track in enumerate(tracks):
+        layout = layout_for(i, layouts)
+        argv = ("drive", "--sim", "--autopilot", "--expert-intervene", "--model", str(model),
+                "--record", "--seed", str(track), "--layout", layout, "--track-seed", str(track),
+                "--out", str(out), "--duration", str(seconds))  # fmt: skip
+        jobs.append(Job(argv, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}"))
+    return jobs
+
+
+def _run_job(job: Job) -> tuple[Job, int]:
+    """In a pool worker: the carrt command in-process (no interpreter start per placement),
+    its output to the placement's log."""
+    from carrt.cli import main as carrt
+
+    job.log.parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.StringIO()
+    with contextlib.redirect_stdout(buffer), contextlib.redirect_stderr(buffer):
+        try:
+            code = carrt(list(job.argv))
+        except SystemExit as exc:  # argparse
+            code = int(exc.code or 0)
+    job.log.write_text(buffer.getvalue())
+    if code == 0:
+        job.marker.touch()
+    return job, code
+
+
+def run_jobs(jobs: list[Job], jobs_at_once: int, what: str) -> None:
+    """Every job not yet done, `jobs_at_once` processes at a time, with a progress bar; a
+    failed placement is named with its log and ends the call (the rest keep their markers)."""
+    todo = [job for job in jobs if not job.marker.exists()]
+    if not todo:
+        return
+    # An executor, not multiprocessing.Pool: a worker that dies mid-run (a crash in a native
+    # library) breaks the executor with an error instead of leaving the call waiting forever.
+    context = multiprocessing.get_context("forkserver")
+    failed: list[tuple[Job, int]] = []
+    with ProcessPoolExecutor(jobs_at_once, mp_context=context, max_tasks_per_child=50) as pool:
+        bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=what, unit="placement")
+        for future in as_completed([pool.submit(_run_job, job) for job in todo]):
+            job, code = future.result()
+            bar.update()
+            if code != 0:
+                failed.append((job, code))
+        bar.close()
+    if failed:
+        job, code = failed[0]
+        raise UserError(f"{len(failed)} placement(s) failed, e.g. exit {code}: see {job.log}")
+
+
+def count_frames(*dirs: Path) -> int:
+    return sum(read_episode(p).n for p in list_episodes([str(d) for d in dirs]))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m training.sim_data", description=__doc__)
+    sub = parser.add_subparsers(dest="what", required=True)
+    for name in ("demos", "interventions"):
+        p = sub.add_parser(name)
+        p.add_argument("--out", required=True, help="episode directory to fill")
+        p.add_argument("--tracks", default="1000-1149", help="placement seeds (ranges, commas)")
+        p.add_argument("--layouts", default="hard", help="comma list, taken in turn")
+        p.add_argument("--jobs", type=int, default=2, help="processes (default: 2)")
+        if name == "demos":
+            p.add_argument("--episodes", type=int, default=8, help="episodes per placement")
+        else:
+            p.add_argument("--model", required=True, help="the policy that drives (.onnx)")
+            p.add_argument("--seconds", type=float, default=60.0, help="simulated s per placement")
+    args = parser.parse_args(argv)
+    try:
+        out = Path(args.out)
+        tracks = parse_tracks(args.tracks)
+        layouts = [x.strip() for x in args.layouts.split(",") if x.strip()]
+        if args.what == "demos":
+            jobs = demo_jobs(out, tracks, layouts, args.episodes)
+        else:
+            if not Path(args.model).is_file():
+                raise UserError(f"no such model: {args.model}")
+            jobs = intervention_jobs(out, Path(args.model), tracks, layouts, args.seconds)
+        out.mkdir(parents=True, exist_ok=True)
+        run_jobs(jobs, max(1, args.jobs), args.what)
+        print(f"{out}: {count_frames(out):,} frames")
+    except UserError as exc:
+        print(f"sim_data: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
