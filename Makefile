@@ -14,7 +14,7 @@ STAMP310 := $(VENV310)/.installed
 FW_SOURCES := $(wildcard firmware_bridge/firmware/carrt_fw/src/*.[ch] firmware_bridge/firmware/host/*.c) \
 	firmware_bridge/core_sources.py setup.py
 
-.PHONY: demo test test-py310 bench study demo-policy lint format clean firmware-avr core
+.PHONY: demo test test-py310 bench study demo-policy il-curve lint format clean firmware-avr core
 
 $(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
@@ -55,9 +55,15 @@ bench: $(STAMP)
 study: $(STAMP)
 	$(PY) -m bench.dirl_sim
 
-# Reproduce carrt/assets/demo_policy.onnx, the policy `make demo` drives with.
-demo-policy: $(STAMP)
+# Reproduce carrt/assets/demo_policy.onnx, the policy `make demo` drives with (demonstrations,
+# imitation, expert take-overs, imitation, int8 export, carrt eval; about 30 min on 2 cores).
+demo-policy: $(STAMP) core
 	$(PY) training/demo_policy.py
+
+# Driving against training data: imitation on 1/4, 1/2 and all of demo-policy's demonstrations,
+# and the take-over iteration, judged on the held-out placements (after make demo-policy).
+il-curve: $(STAMP) core
+	$(PY) -m bench.il_curve --work demo-policy-work
 
 lint: $(STAMP)
 	$(PY) -m ruff check --fix .

@@ -249,7 +249,7 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             follower.mode_source = lambda: loop.arbiter.mode
         rig.joystick.start(on_estop=lambda: loop.estop("joystick"))
         stack.callback(rig.joystick.stop)
-        _stop_on_signals(loop)
+        _stop_on_signals(loop, stack)
         print(f"carrt {'drive' if policy else 'teleop'}: {rig.describe}")
         summary = loop.run()
     print(summary.render())
@@ -294,11 +294,14 @@ def _episode_metadata(config, policy, link: BoardLink, mode: str) -> dict[str, A
     }
 
 
-def _stop_on_signals(loop: Any) -> None:
-    """SIGINT/SIGTERM end the run through the normal shutdown (only from the main thread)."""
+def _stop_on_signals(loop: Any, stack: contextlib.ExitStack) -> None:
+    """SIGINT/SIGTERM end the run through the normal shutdown (only from the main thread);
+    the previous handlers come back when the run ends, so a caller that runs several sessions
+    in one process (carrt eval, the tests) is never left with a handler of a finished loop."""
     if threading.current_thread() is not threading.main_thread():
         return
     for sig in (signal.SIGINT, signal.SIGTERM):
+        stack.callback(signal.signal, sig, signal.getsignal(sig))
         signal.signal(sig, lambda *_: loop.stop())
 
 

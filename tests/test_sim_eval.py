@@ -63,3 +63,13 @@ def test_track_lists_and_ranges():
     assert parse_int_list("3", "seeds") == [3]
     with pytest.raises(UserError):
         parse_int_list("-1", "seeds")
+
+
+def test_runs_in_this_process_leave_the_signal_handlers_as_they_found_them():
+    """A session installs its own SIGINT/SIGTERM handlers while it runs; several sessions in one
+    process (carrt eval with one job) must not leave Ctrl-C bound to a finished loop."""
+    import signal
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    evaluate(None, layout="easy", tracks=(3,), seconds=3.0)
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
