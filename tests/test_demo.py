@@ -17,7 +17,7 @@ def test_the_shipped_policy_meets_the_model_contract_and_is_small():
     assert policy.horizon == 10
     assert int(policy.metadata["carrt.iteration"]) >= 0
     assert len(policy.metadata["carrt.training_data_digest"]) == 64, "trained on recorded data"
-    assert DEMO_POLICY.stat().st_size < 3_000_000, "small enough to live in the repository"
+    assert DEMO_POLICY.stat().st_size < 4_000_000, "small enough to live in the repository"
 
 
 def test_the_shipped_policy_drives_held_out_placements(tmp_path):
@@ -31,11 +31,13 @@ def test_the_shipped_policy_drives_held_out_placements(tmp_path):
         ).result(timeout_s=120)  # fmt: skip
         assert code == 0
         results.append(json.loads((out / "sim_metrics.json").read_text()))
-    # Measured when it shipped: 2 and 3 laps, 1.32 and 1.59 m/s, 9 and 5 collisions in 40 s.
-    # A policy that stalls, circles or crashes at once fails this.
-    assert sum(r["laps"] for r in results) >= 3, results
-    assert min(r["average_speed"] for r in results) > 1.0, results
-    assert sum(r["distance"] for r in results) > 60.0, results
+    # Measured when it shipped (2026-11-22): 5 and 5 laps, 1.85 and 1.81 m/s, 2 and 0
+    # collisions, 68 and 72 m in 40 s. A policy that stalls, circles, crashes at once or
+    # creeps round fails this; so does one that collides every 10 s.
+    assert sum(r["laps"] for r in results) >= 8, results
+    assert min(r["average_speed"] for r in results) > 1.5, results
+    assert sum(r["distance"] for r in results) > 120.0, results
+    assert sum(r["collisions"] for r in results) <= 4, results
 
 
 def test_make_demo_drives_records_and_reports(tmp_path):

@@ -21,8 +21,8 @@ must be able to check that claim. The project's own commands, top to bottom, eac
    interventions give on a real car).
 4. Imitation again on demonstrations + take-overs (a fresh model, DAgger-style aggregation),
    16000 steps.
-5. `python -m export --int8`: the int8 file is what ships; its error against the float model
-   is checked on recorded frames before it is written.
+5. The float ONNX file iterate.py exported (parity with PyTorch checked on recorded frames)
+   ships; `python -m export --int8` refused an int8 variant of it (error bound).
 6. `carrt eval` on the held-out placements 100-104 of the `hard` layout (never recorded for
    training), 60 simulated seconds each, two seeds: the paper's table, saved as JSON.
 
@@ -99,12 +99,12 @@ def main(argv: list[str] | None = None) -> int:
          "--out", str(takeovers), "--tracks", TAKEOVER_TRACKS, "--layouts", LAYOUTS,
          "--seconds", "60", "--jobs", str(a.jobs)], work / ".done-takeovers")  # fmt: skip
     run(imitation(py, [expert, takeovers], il2, a, a.final_steps), il2 / ".done")
-    fp32 = work / "demo_policy.onnx"
-    run([py, "-m", "export", str(il2 / "policy.pt"), "-o", str(fp32), "--episodes",
-         str(expert), "--int8"], work / ".done-export")  # fmt: skip
+    # iterate.py exported the policy through export.export_policy (parity with PyTorch on
+    # recorded frames checked). No int8 variant: export refused it for this policy (μ error
+    # max 0.48 against fp32 on held-out frames, bound 0.2), so the float file ships.
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(fp32.with_suffix(".int8.onnx"), out)
+    shutil.copyfile(il2 / "policy.onnx", out)
     print(f"wrote {out} ({out.stat().st_size:,} bytes)")
     run([py, "-m", "carrt", "eval", "--model", str(out), "--layout", "hard", "--tracks",
          EVAL_TRACKS, "--seconds", "60", "--seeds", "0,1", "--jobs", str(a.jobs),
