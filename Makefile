@@ -18,14 +18,14 @@ FW_SOURCES := $(wildcard firmware_bridge/firmware/carrt_fw/src/*.[ch] firmware_b
 
 $(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet --upgrade pip "setuptools>=77"
 	$(PY) -m pip install --quiet torch==2.13.0
 	$(PY) -m pip install --quiet -e '.[laptop,dev,train]'
 	touch $(STAMP)
 
 $(STAMP310): pyproject.toml setup.py
 	$(PYTHON310) -m venv $(VENV310)
-	$(PY310) -m pip install --quiet --upgrade pip
+	$(PY310) -m pip install --quiet --upgrade pip "setuptools>=77"
 	$(PY310) -m pip install --quiet -e '.[laptop,dev]'
 	touch $(STAMP310)
 
