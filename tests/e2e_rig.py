@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
@@ -148,3 +149,17 @@ def record_sim_dataset(root: Path) -> Path:
              "--duration", "600"]  # fmt: skip
     assert CliRun(other).result(timeout_s=300) == 0
     return out
+
+
+def keyboard_teleop(out: Path, *extra: str) -> tuple[CliRun, Callable[[int, int], None]]:
+    """`carrt teleop --sim` in real time with its pygame window up (no noise injection), and a
+    function that posts a key event into the window's queue, as a person's key press would."""
+    run = CliRun(["teleop", "--sim", "--layout", "empty", "--duration", "6", "--out", str(out),
+                  "--set", "noise.fraction=0.0", *extra])  # fmt: skip
+    wait_for(lambda: pygame.display.get_init() and pygame.display.get_surface() is not None, 10)
+    time.sleep(0.3)
+
+    def key(kind: int, k: int) -> None:
+        pygame.event.post(pygame.event.Event(kind, key=k, mod=0, unicode="", scancode=0))
+
+    return run, key

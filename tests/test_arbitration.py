@@ -455,7 +455,6 @@ def test_inputs_are_plain_values():
 def test_a_braking_policy_reaches_the_board_command_negative(tmp_path):
     """Negative throttle (brake/reverse) from an ONNX policy survives predict, the arbiter in
     AUTO and the link's fixed-point command; the board then caps it at config max_reverse."""
-    pytest.importorskip("onnxruntime")
     from onnx_models import build_policy
 
     from carrt.policy import OnnxPolicy

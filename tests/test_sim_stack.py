@@ -7,7 +7,7 @@ import json
 import time
 
 import numpy as np
-from e2e_rig import CliRun, wait_for
+from e2e_rig import CliRun, keyboard_teleop
 from onnx_models import build_policy
 
 from carrt.episodes.reader import list_episodes, read_episode
@@ -99,16 +99,7 @@ def test_keyboard_window_drives_the_simulator(tmp_path):
     import pygame
 
     out = tmp_path / "keys"
-    run = CliRun(
-        ["teleop", "--sim", "--layout", "empty", "--duration", "6", "--record", "--out", str(out),
-         "--set", "noise.fraction=0.0"]
-    )  # fmt: skip
-    wait_for(lambda: pygame.display.get_init() and pygame.display.get_surface() is not None, 10)
-    time.sleep(0.3)
-
-    def key(kind, k):
-        pygame.event.post(pygame.event.Event(kind, key=k, mod=0, unicode="", scancode=0))
-
+    run, key = keyboard_teleop(out, "--record")
     key(pygame.KEYDOWN, pygame.K_RETURN)  # arm
     time.sleep(0.5)
     key(pygame.KEYDOWN, pygame.K_UP)  # accelerate

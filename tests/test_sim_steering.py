@@ -64,8 +64,9 @@ def test_gym_env_steering_minus_one_turns_left():
 
 
 def test_keyboard_left_is_negative_steering_and_turns_left():
-    pygame = pytest.importorskip("pygame")
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+    import pygame
+
     from carrt.sim.keyboard import KeyboardPad
 
     class _NoCamera:
@@ -109,20 +110,11 @@ def test_the_expert_steers_left_into_a_left_hand_bend():
 def test_keyboard_left_turns_the_car_left_through_the_whole_stack(tmp_path):
     """`carrt teleop --sim` in real time: the window's Left key, the loop, the C core's pulse
     over the pty, the plant. The saved trajectory bends counter-clockwise."""
-    pygame = pytest.importorskip("pygame")
-    from e2e_rig import CliRun, wait_for
+    import pygame
+    from e2e_rig import keyboard_teleop
 
     out = tmp_path / "keys"
-    run = CliRun(
-        ["teleop", "--sim", "--layout", "empty", "--duration", "6", "--out", str(out),
-         "--set", "noise.fraction=0.0"]
-    )  # fmt: skip
-    wait_for(lambda: pygame.display.get_init() and pygame.display.get_surface() is not None, 10)
-    time.sleep(0.3)
-
-    def key(kind, k):
-        pygame.event.post(pygame.event.Event(kind, key=k, mod=0, unicode="", scancode=0))
-
+    run, key = keyboard_teleop(out)
     key(pygame.KEYDOWN, pygame.K_RETURN)  # arm
     time.sleep(0.5)
     key(pygame.KEYDOWN, pygame.K_UP)
