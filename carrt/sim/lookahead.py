@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 
-from carrt.sim.car import footprint
 from carrt.sim.types import CarState
 
 HORIZON_S = 0.6  # how far ahead a person judges a crash as imminent
@@ -25,11 +24,7 @@ def collision_ahead(
 ) -> bool:
     """True when the car's body, swept forward on its current arc, comes within `margin` of an
     obstacle or the fence within `horizon_s` seconds."""
-    from carrt.sim.world import _distance_to_body
-
     car = world.car if state is None else state
-    params = world.params
-    width, height = world.track.arena
     v = max(car.v, MIN_SPEED)
     yaw_rate = car.yaw_rate if car.v > 1e-6 else 0.0
     x, y, yaw = car.x, car.y, car.yaw
@@ -41,13 +36,7 @@ def collision_ahead(
             py = y - v / yaw_rate * (math.cos(heading) - math.cos(yaw))
         else:
             px, py = x + v * t * math.cos(yaw), y + v * t * math.sin(yaw)
-        probe = CarState(px, py, heading)
-        for cx, cy in footprint(probe, params):
-            if cx < margin or cy < margin or cx > width - margin or cy > height - margin:
-                return True
-        for ob in world.track.obstacles:
-            if abs(ob.x - px) > 0.5 or abs(ob.y - py) > 0.5:
-                continue
-            if _distance_to_body(probe, params, ob.x, ob.y) <= ob.radius + margin:
-                return True
+        obstacle, fence = world.body_gaps(CarState(px, py, heading))
+        if fence < margin or obstacle <= margin:
+            return True
     return False

@@ -151,19 +151,22 @@ class SimWorld:
     def clear_place_after(self, s: float) -> float:
         """The first arc position at or after s where a car at rest on the centerline is clear
         of every obstacle by RESET_CLEARANCE and of the fence by RESET_FENCE_CLEARANCE."""
-        for _ in range(math.ceil(self.track.length / RESET_STEP)):
-            if self._clear_at(s):
-                return s
-            s += RESET_STEP
-        return s
+        return self._first_clear(s, RESET_STEP)
 
     def clear_place_before(self, s: float) -> float:
         """The first arc position at or behind s where a car at rest is clear (as above)."""
-        for _ in range(math.ceil(self.track.length / RESET_STEP)):
-            if self._clear_at(s):
-                return s
-            s -= RESET_STEP
-        return s
+        return self._first_clear(s, -RESET_STEP)
+
+    def body_gaps(self, probe: CarState) -> tuple[float, float]:
+        """(nearest obstacle, nearest fence) distance of a car body at `probe`, in metres: the
+        one measure the auto-reset's clear place and the safety driver's look-ahead judge by."""
+        obstacle = min(
+            (_distance_to_body(probe, self.params, ox, oy) - r for ox, oy, r in self._obstacles),
+            default=math.inf,
+        )
+        width, height = self.track.arena
+        fence = min(min(x, y, width - x, height - y) for x, y in footprint(probe, self.params))
+        return obstacle, fence
 
     # -- internals -------------------------------------------------------------------------
 
@@ -216,16 +219,16 @@ class SimWorld:
                 return "obstacle"
         return ""
 
+    def _first_clear(self, s: float, step: float) -> float:
+        for _ in range(math.ceil(self.track.length / abs(step))):
+            if self._clear_at(s):
+                return s
+            s += step
+        return s
+
     def _clear_at(self, s: float) -> bool:
-        probe = CarState(*pose_at(self.track, s))
-        gaps = [_distance_to_body(probe, self.params, ox, oy) - r for ox, oy, r in self._obstacles]
-        if min(gaps, default=math.inf) < RESET_CLEARANCE:
-            return False
-        width, height = self.track.arena
-        m = RESET_FENCE_CLEARANCE
-        return all(
-            m <= x <= width - m and m <= y <= height - m for x, y in footprint(probe, self.params)
-        )
+        obstacle, fence = self.body_gaps(CarState(*pose_at(self.track, s)))
+        return obstacle >= RESET_CLEARANCE and fence >= RESET_FENCE_CLEARANCE
 
     def _obstacle_hit(self):
         """The obstacle the car stands against after an obstacle collision, else None."""
