@@ -37,3 +37,16 @@ def test_interventions_need_a_model(tmp_path, capsys):
     argv = ["interventions", "--out", str(tmp_path), "--model", str(tmp_path / "none.onnx")]
     assert sim_data.main(argv) == 2
     assert "no such model" in capsys.readouterr().err
+
+
+def test_more_placements_than_a_worker_runs_all_finish(tmp_path, monkeypatch):
+    """Regression: with max_tasks_per_child the pool hung once both workers had retired (CPython
+    gh-115634; the take-over recording stopped forever after 100 placements)."""
+    monkeypatch.setattr(sim_data, "TASKS_PER_WORKER", 2)
+    jobs = [
+        sim_data.Job(("--version",), tmp_path / f"{i}.log", tmp_path / f".done-{i}")
+        for i in range(7)
+    ]
+    sim_data.run_jobs(jobs, 2, "test")
+    assert all(job.marker.exists() for job in jobs)
+    assert all(job.log.read_text().startswith("carrt") for job in jobs)

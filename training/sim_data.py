@@ -35,6 +35,7 @@ from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import EXIT_USAGE, UserError
 
 EVALUATION_TRACKS = frozenset(range(100, 105))  # held out: never recorded for training
+TASKS_PER_WORKER = 25  # placements a worker process runs before a fresh pool replaces it
 
 
 @dataclass(frozen=True)
@@ -122,16 +123,22 @@ def run_jobs(jobs: list[Job], jobs_at_once: int, what: str) -> None:
         return
     # An executor, not multiprocessing.Pool: a worker that dies mid-run (a crash in a native
     # library) breaks the executor with an error instead of leaving the call waiting forever.
+    # A fresh executor per chunk of TASKS_PER_WORKER tasks per worker bounds what a long-lived
+    # worker accumulates; not max_tasks_per_child, with which CPython 3.11/3.12 hangs once
+    # every worker has retired (CPython gh-115634: the call waited forever after 100 placements).
     context = multiprocessing.get_context("forkserver")
     failed: list[tuple[Job, int]] = []
-    with ProcessPoolExecutor(jobs_at_once, mp_context=context, max_tasks_per_child=50) as pool:
-        bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=what, unit="placement")
-        for future in as_completed([pool.submit(_run_job, job) for job in todo]):
-            job, code = future.result()
-            bar.update()
-            if code != 0:
-                failed.append((job, code))
-        bar.close()
+    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=what, unit="placement")
+    chunk = jobs_at_once * TASKS_PER_WORKER
+    for first in range(0, len(todo), chunk):
+        with ProcessPoolExecutor(jobs_at_once, mp_context=context) as pool:
+            futures = [pool.submit(_run_job, job) for job in todo[first : first + chunk]]
+            for future in as_completed(futures):
+                job, code = future.result()
+                bar.update()
+                if code != 0:
+                    failed.append((job, code))
+    bar.close()
     if failed:
         job, code = failed[0]
         raise UserError(f"{len(failed)} placement(s) failed, e.g. exit {code}: see {job.log}")
