@@ -71,6 +71,15 @@ def finish_run(
         }
 
     export_lines, export_info, exit_code = _export(cfg, out)
+    counterfactual = None
+    world_model_trained = cfg.world_model_steps > 0 or cfg.init
+    if cfg.counterfactual_starts > 0 and world_model_trained and (out / "policy.onnx").is_file():
+        from training.counterfactual import check_run
+
+        counterfactual = check_run(
+            out, None, cfg.counterfactual_layout, cfg.counterfactual_tracks,
+            cfg.counterfactual_starts,
+        )  # fmt: skip
     stages = {
         name: {
             "steps": r.steps,
@@ -96,7 +105,7 @@ def finish_run(
         "iteration": iteration, "profile": cfg.profile, "world_size": world_size,
         "device": str(device), "data": data, "stages": stages,
         "metrics": metrics, "figures": figures, "export": export_info,
-        "normalisation": norm.to_dict(),
+        "normalisation": norm.to_dict(), "counterfactual": counterfactual,
     }  # fmt: skip
     (out / "metrics.json").write_text(json.dumps(_finite(record), indent=2, default=str) + "\n")
     (out / "report.md").write_text(render(cfg, record, export_lines))
@@ -170,6 +179,20 @@ def render(cfg, r: dict, export_lines: list[str]) -> str:
             + " |"
         )
         md.append("")
+    if r.get("counterfactual"):
+        from training.counterfactual import describe
+
+        c = r["counterfactual"]
+        md += [
+            f"## Counterfactual check (simulator, placements {cfg.counterfactual_tracks} of "
+            f"`{cfg.counterfactual_layout}`)",
+            "",
+            "Action sequences replayed in the simulator from the same start, imagined by the "
+            "world model (training/counterfactual.py):",
+            "",
+            describe(c),
+            "",
+        ]
     if r["figures"]:
         md += ["## Figures", ""]
         md += [f"### {title}\n\n![{title}]({p})\n" for title, p in r["figures"].items()]

@@ -3,15 +3,18 @@
     python -m training.sim_data demos --out data/expert --tracks 1000-1149 --jobs 2
     python -m training.sim_data interventions --model policy.onnx --out data/iter1 \
         --tracks 1000-1149
+    python -m training.sim_data drives --model policy.onnx --out data/crashes --tracks 1000-1019
 
 Each placement is one run of the project's own recording command, exactly what a user types:
 `carrt teleop --sim --expert auto --record` for demonstrations (the scripted expert drives from
 random places at rest, with the loop's noise injection half of the time so the recordings hold
 recoveries), and `carrt drive --sim --autopilot --expert-intervene --record` for the next
 iteration's data (the policy drives; the expert, playing the person with the pad, takes over
-before a collision, and its commands label states the policy itself reached). Only episodes
-are training data, as on a real car; the simulator's saved trajectories (sim-runs/) are for
-evaluation.
+before a collision, and its commands label states the policy itself reached), and
+`carrt drive --sim --autopilot --record` for a DIRL iteration's data (the policy drives alone;
+every collision is labelled and followed by the auto-reset, the world model's crash examples).
+Only episodes are training data, as on a real car; the simulator's saved trajectories
+(sim-runs/) are for evaluation.
 
 Runs go to a process pool (one process per core); a finished placement leaves a marker, so an
 interrupted call resumes where it stopped. Placements must not overlap the evaluation ones
@@ -84,13 +87,22 @@ def demo_jobs(out: Path, tracks: list[int], layouts: list[str], episodes: int) -
     return jobs
 
 
-def intervention_jobs(
-    out: Path, model: Path, tracks: list[int], layouts: list[str], seconds: float
+def drive_jobs(
+    out: Path,
+    model: Path,
+    tracks: list[int],
+    layouts: list[str],
+    seconds: float,
+    *,
+    intervene: bool,
 ) -> list[Job]:
+    """The policy drives each placement; with `intervene` the expert takes over before a crash,
+    without it every crash is recorded (labelled, then the auto-reset) for the world model."""
     jobs = []
+    take_over = ("--expert-intervene",) if intervene else ()
     for i, track in enumerate(tracks):
         layout = layout_for(i, layouts)
-        argv = ("drive", "--sim", "--autopilot", "--expert-intervene", "--model", str(model),
+        argv = ("drive", "--sim", "--autopilot", *take_over, "--model", str(model),
                 "--record", "--seed", str(track), "--layout", layout, "--track-seed", str(track),
                 "--out", str(out), "--duration", str(seconds))  # fmt: skip
         jobs.append(Job(argv, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}"))
@@ -151,7 +163,7 @@ def count_frames(*dirs: Path) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m training.sim_data", description=__doc__)
     sub = parser.add_subparsers(dest="what", required=True)
-    for name in ("demos", "interventions"):
+    for name in ("demos", "interventions", "drives"):
         p = sub.add_parser(name)
         p.add_argument("--out", required=True, help="episode directory to fill")
         p.add_argument("--tracks", default="1000-1149", help="placement seeds (ranges, commas)")
@@ -172,7 +184,10 @@ def main(argv: list[str] | None = None) -> int:
         else:
             if not Path(args.model).is_file():
                 raise UserError(f"no such model: {args.model}")
-            jobs = intervention_jobs(out, Path(args.model), tracks, layouts, args.seconds)
+            intervene = args.what == "interventions"
+            jobs = drive_jobs(
+                out, Path(args.model), tracks, layouts, args.seconds, intervene=intervene
+            )
         out.mkdir(parents=True, exist_ok=True)
         run_jobs(jobs, max(1, args.jobs), args.what)
         print(f"{out}: {count_frames(out):,} frames")

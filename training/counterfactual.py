@@ -1,0 +1,192 @@
+"""Does the world model know what actions do? Its imagination scored against the simulator's truth.
+
+    python -m training.counterfactual --run runs/iter1                 # tracks 200-204
+    python -m training.counterfactual --run runs/iter1 --data cf.npz   # a set made before
+
+Refinement improves the policy only as far as the world model ranks action sequences the way
+reality would. Losses on recorded windows cannot show that: the recordings hold the actions a
+demonstrator took, not the ones refinement will try. So, in the simulator only (training never
+sees simulator state), `carrt.sim.counterfactual` replays several action sequences from the same
+held-out start states and records what each really did; here the world model imagines the same
+sequences from the same frame and speed, and three numbers say how far to trust it:
+
+  collision AUROC   over every (collides, does not) pair of sequences FROM THE SAME START, how
+                    often the colliding one gets the higher imagined risk (max over the horizon
+                    of p̂(collision)); 0.5 is a model that ignores the actions
+  speed error       mean |imagined − true| m/s over the steps before any collision, next to the
+                    constant-speed baseline (the start speed held): a useful model is below it
+  rank correlation  Spearman's ρ, per start, between the imagined refinement objective
+                    (training/refine.refine_objective, uncertainty term included) and the true
+                    one (−w_spd·speed + w_coll·collision per step, speed 0 after a collision),
+                    averaged over starts
+
+The set is generated in a separate process: the simulator and torch in one process have
+crashed with heap corruption here (see docs/architecture.md), and the generator needs neither
+torch nor the world model, only the policy's ONNX file for its plans.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from carrt.policy import file_sha256
+from training import checkpoint as ck
+from training.refine import imagine, refine_objective
+from training.world_training import Targets
+
+TARGETS = {"collision_auroc": 0.85, "rank_correlation": 0.5}  # issue 14's bar for trusting it
+
+
+def generate(model_onnx: Path, out: Path, layout: str, tracks: str, starts: int, seed: int) -> None:
+    """The simulator's ground truth, in its own process (python -m carrt.sim.counterfactual)."""
+    argv = [sys.executable, "-m", "carrt.sim.counterfactual", "--model", str(model_onnx),
+            "--layout", layout, "--tracks", tracks, "--starts", str(starts), "--seed", str(seed),
+            "--out", str(out)]  # fmt: skip
+    done = subprocess.run(argv, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"counterfactual: generating {out} failed: {done.stderr.strip()}")
+
+
+def load(path: str | Path) -> dict[str, np.ndarray]:
+    with np.load(path) as data:
+        out = {k: data[k] for k in data.files}
+    out["meta"] = json.loads(str(out["meta"]))
+    return out
+
+
+def within_start_auroc(scores: np.ndarray, labels: np.ndarray) -> tuple[float, int]:
+    """AUROC over (positive, negative) pairs that share a start; (nan, 0) with no such pair."""
+    wins = pairs = 0.0
+    for s, y in zip(scores, labels, strict=True):
+        pos, neg = s[y > 0], s[y == 0]
+        if len(pos) and len(neg):
+            diff = pos[:, None] - neg[None, :]
+            wins += float((diff > 0).sum() + 0.5 * (diff == 0).sum())
+            pairs += diff.size
+    return (wins / pairs if pairs else float("nan")), int(pairs)
+
+
+def _ranks(x: np.ndarray) -> np.ndarray:
+    order = np.argsort(x, kind="stable")
+    ranks = np.empty(len(x))
+    ranks[order] = np.arange(len(x))
+    for value in np.unique(x):  # ties share their mean rank
+        tied = x == value
+        ranks[tied] = ranks[tied].mean()
+    return ranks
+
+
+def spearman(a: np.ndarray, b: np.ndarray) -> float:
+    ra, rb = _ranks(a), _ranks(b)
+    if ra.std() == 0 or rb.std() == 0:
+        return float("nan")
+    return float(np.corrcoef(ra, rb)[0, 1])
+
+
+def true_objective(data: dict, w_speed: float, w_collision: float) -> np.ndarray:
+    """(N, K): Σ_t −w_spd·v_t + w_coll·c_t, with the car standing (v = 0) after a collision."""
+    speed = data["true_speed"] * data["mask"]
+    return (-w_speed * speed + w_collision * data["true_collision"]).sum(axis=2)
+
+
+@torch.no_grad()
+def score(world_model, norm, data: dict, cfg: dict) -> dict:
+    """The three numbers (and their parts) for one world model on one counterfactual set."""
+    world_model.eval()
+    targets = Targets(norm)
+    n, k, h, _ = data["actions"].shape
+    if h != world_model.horizon:
+        raise SystemExit(
+            f"counterfactual: horizon {h} in the set, {world_model.horizon} in the model"
+        )
+    weights = (cfg["refine_w_speed"], cfg["refine_w_collision"], cfg["refine_w_uncertainty"])
+    imagined_speed, risk, objective = np.zeros((n, k, h)), np.zeros((n, k)), np.zeros((n, k))
+    for i in range(n):
+        image = torch.from_numpy(data["image"][i]).expand(k, *data["image"].shape[1:])
+        speed = torch.full((k, 1), float(data["speed"][i]))
+        actions = torch.from_numpy(data["actions"][i])
+        out = imagine(world_model, targets, image, speed, actions, cfg["uncertainty_clip"])
+        imagined_speed[i] = out["speed"].numpy()
+        risk[i] = out["p_collision"].max(dim=1).values.numpy()
+        for j in range(k):
+            one = {key: value[j : j + 1] for key, value in out.items()}
+            objective[i, j] = float(refine_objective(one, *weights)[0])
+    collided = data["true_collision"].max(axis=2)
+    auroc, pairs = within_start_auroc(risk, collided)
+    # speed: steps before the first collision (the collision step's speed is the crash's)
+    before = (data["mask"] > 0) & (np.cumsum(data["true_collision"], axis=2) == 0)
+    true_speed = data["true_speed"]
+    baseline = np.broadcast_to(data["speed"][:, None, None], true_speed.shape)
+    truth = true_objective(data, cfg["refine_w_speed"], cfg["refine_w_collision"])
+    rhos = [spearman(objective[i], truth[i]) for i in range(n)]
+    return {
+        "starts": int(n),
+        "sequences_per_start": int(k),
+        "collision_rate": float(collided.mean()),
+        "collision_auroc": auroc,
+        "auroc_pairs": pairs,
+        "speed_mae": float(np.abs(imagined_speed - true_speed)[before].mean()),
+        "speed_mae_constant": float(np.abs(baseline - true_speed)[before].mean()),
+        "rank_correlation": float(np.nanmean(rhos)) if np.isfinite(rhos).any() else float("nan"),
+        "plan_is_best_imagined": float(np.mean(objective.argmin(axis=1) == 0)),
+        "plan_is_best_true": float(np.mean(truth.argmin(axis=1) == 0)),
+    }
+
+
+def check_run(run: Path, data_path: Path | None, layout: str, tracks: str, starts: int) -> dict:
+    """Generate (unless given) the set from the run's policy, then score its world model."""
+    wm_path = run / "world_model.pt"
+    if not wm_path.is_file():
+        raise SystemExit(f"counterfactual: {wm_path}: no such file (a run with a world model)")
+    if data_path is None:  # made from this run's policy; remade when the policy changed
+        data_path, onnx = run / "counterfactual.npz", run / "policy.onnx"
+        if not data_path.is_file() or load(data_path)["meta"]["model_sha256"] != file_sha256(onnx):
+            generate(onnx, data_path, layout, tracks, starts, seed=0)
+    from training.data import Normalisation
+
+    world_model, ckpt = ck.load_world_model(wm_path)
+    cfg = ckpt["config"]
+    if cfg.get("no_uncertainty"):
+        cfg = {**cfg, "refine_w_uncertainty": 0.0}
+    norm = Normalisation.from_dict(ckpt["normalisation"])
+    result = score(world_model, norm, load(data_path), cfg)
+    result["data"] = str(data_path)
+    return result
+
+
+def describe(result: dict) -> str:
+    return (
+        f"collision AUROC {result['collision_auroc']:.3f} over {result['auroc_pairs']} pairs "
+        f"(target ≥ {TARGETS['collision_auroc']}); speed MAE {result['speed_mae']:.3f} m/s "
+        f"(constant-speed {result['speed_mae_constant']:.3f}); rank correlation "
+        f"{result['rank_correlation']:.3f} (target ≥ {TARGETS['rank_correlation']}); "
+        f"{result['starts']} starts × {result['sequences_per_start']} sequences, "
+        f"{result['collision_rate']:.0%} collide"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m training.counterfactual", description=__doc__)
+    p.add_argument("--run", required=True, help="iterate.py run directory (world_model.pt)")
+    p.add_argument("--data", help="counterfactual .npz (default: generate RUN/counterfactual.npz)")
+    p.add_argument("--layout", default="hard")
+    p.add_argument("--tracks", default="200-204", help="held-out placements (not 100-104)")
+    p.add_argument("--starts", type=int, default=20, help="start states per placement")
+    p.add_argument("--json", help="write the numbers here")
+    a = p.parse_args(argv)
+    result = check_run(Path(a.run), Path(a.data) if a.data else None, a.layout, a.tracks, a.starts)
+    print(describe(result))
+    if a.json:
+        Path(a.json).write_text(json.dumps(result, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
