@@ -26,15 +26,6 @@ def test_auroc_counts_only_pairs_from_the_same_start():
     assert np.isnan(cf.within_start_auroc(perfect, np.zeros((3, 3)))[0])
 
 
-def test_spearman_is_rank_correlation_with_ties():
-    assert cf.spearman(np.array([1.0, 2.0, 3.0]), np.array([10.0, 200.0, 3000.0])) == 1.0
-    assert cf.spearman(np.array([1.0, 2.0, 3.0]), np.array([3.0, 2.0, 1.0])) == -1.0
-    assert cf.spearman(np.array([1.0, 1.0, 2.0]), np.array([5.0, 6.0, 7.0])) == pytest.approx(
-        np.sqrt(3) / 2
-    )
-    assert np.isnan(cf.spearman(np.ones(3), np.arange(3.0)))
-
-
 def test_true_objective_counts_no_speed_after_a_collision():
     data = {
         "true_speed": np.array([[[2.0, 2.0, 0.0]]]),

@@ -22,13 +22,19 @@ from training.data import (  # noqa: E402
     WindowDataset,
     compute_normalisation,
     load_episodes,
+    take,
 )
 from training.evaluate import auroc, spearman  # noqa: E402
 from training.imitation import imitation_loss, train_imitation  # noqa: E402
 from training.imitation import spec_for as imitation_spec  # noqa: E402
 from training.iterate import PRESETS, IterateConfig  # noqa: E402
 from training.models import PolicyNet, WorldModel  # noqa: E402
-from training.refine import held_out_objective, imagine, train_refine  # noqa: E402
+from training.refine import (  # noqa: E402
+    anchor_penalty,
+    held_out_objective,
+    imagine,
+    train_refine,
+)
 from training.trainer import (  # noqa: E402
     Budget,
     Interrupted,
@@ -216,6 +222,28 @@ def test_refinement_improves_the_objective_and_leaves_the_world_model_untouched(
     assert all(not p.requires_grad for p in world_model.parameters())
     changed = [k for k, v in param_digest(policy).items() if not torch.equal(v, policy_before[k])]
     assert any("head" in k for k in changed) and any("backbone" in k for k in changed)
+
+
+def test_the_anchor_keeps_refinement_near_the_policy_it_started_from(data, trained_world_model):
+    """refine_w_anchor (our safeguard, off in the paper's form): same seed, same steps; the
+    anchored run's plans move less from the starting policy's, and it logs the penalty."""
+    _, norm, windows, _ = data
+    batch = take(windows, range(16))
+    moved, logged = {}, {}
+    for weight in (0.0, 100.0):
+        torch.manual_seed(0)
+        policy, _ = models(norm)
+        policy.eval()
+        with torch.no_grad():
+            start = policy(batch["image"], batch["speed"])[0]
+        world_model = copy.deepcopy(trained_world_model[0])
+        cfg = tiny(refine_steps=30, refine_batch_size=8, refine_lr=1e-3, refine_w_anchor=weight)
+        result = train_refine(cfg, policy, world_model, windows, norm)
+        with torch.no_grad():
+            moved[weight] = float(anchor_penalty(policy(batch["image"], batch["speed"])[0], start))
+        logged[weight] = "anchor" in result.history[-1]
+    assert moved[100.0] < 0.5 * moved[0.0], moved
+    assert logged == {0.0: False, 100.0: True}
 
 
 def test_refinement_gradient_reaches_the_actions_through_the_frozen_world_model(data):

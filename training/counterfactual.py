@@ -38,6 +38,7 @@ import torch
 
 from carrt.policy import file_sha256
 from training import checkpoint as ck
+from training.evaluate import auroc, spearman
 from training.refine import imagine, refine_objective
 from training.world_training import Targets
 
@@ -62,32 +63,18 @@ def load(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def within_start_auroc(scores: np.ndarray, labels: np.ndarray) -> tuple[float, int]:
-    """AUROC over (positive, negative) pairs that share a start; (nan, 0) with no such pair."""
+    """AUROC over (positive, negative) pairs that share a start; (nan, 0) with no such pair.
+
+    Each start's AUROC weighted by its number of pairs: only comparisons between sequences
+    from the same frame count, so a model cannot score by knowing which places are risky."""
     wins = pairs = 0.0
     for s, y in zip(scores, labels, strict=True):
-        pos, neg = s[y > 0], s[y == 0]
-        if len(pos) and len(neg):
-            diff = pos[:, None] - neg[None, :]
-            wins += float((diff > 0).sum() + 0.5 * (diff == 0).sum())
-            pairs += diff.size
+        n_pos = int((y > 0).sum())
+        n = n_pos * (len(y) - n_pos)
+        if n:
+            wins += auroc(s, y > 0) * n
+            pairs += n
     return (wins / pairs if pairs else float("nan")), int(pairs)
-
-
-def _ranks(x: np.ndarray) -> np.ndarray:
-    order = np.argsort(x, kind="stable")
-    ranks = np.empty(len(x))
-    ranks[order] = np.arange(len(x))
-    for value in np.unique(x):  # ties share their mean rank
-        tied = x == value
-        ranks[tied] = ranks[tied].mean()
-    return ranks
-
-
-def spearman(a: np.ndarray, b: np.ndarray) -> float:
-    ra, rb = _ranks(a), _ranks(b)
-    if ra.std() == 0 or rb.std() == 0:
-        return float("nan")
-    return float(np.corrcoef(ra, rb)[0, 1])
 
 
 def true_objective(data: dict, w_speed: float, w_collision: float) -> np.ndarray:

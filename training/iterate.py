@@ -91,6 +91,7 @@ class IterateConfig:
     refine_w_uncertainty: float = 1.0  # cost of u_i + u_s + u_c, per step
     uncertainty_clip: float = 10.0  # each u is clipped here in the refinement loss
     no_uncertainty: bool = False  # the paper's "-unc" ablation: w_unc = 0
+    refine_w_anchor: float = 0.0  # safeguard: Σ|μ−μ_start|² per start (0: the paper's form)
     # -- the world model's counterfactual check (simulator only: training/counterfactual.py)
     counterfactual_starts: int = 0  # start states per placement; 0: off (a real car's data)
     counterfactual_layout: str = "hard"  # simulator layout of the held-out placements
@@ -128,7 +129,7 @@ class IterateConfig:
             "imitation_steps", "world_model_steps", "refine_steps", "ckpt_every", "eval_every",
             "stop_after", "num_workers", "collision_weight", "threads", "intervention_weight",
             "augment_hue", "augment_saturation", "augment_brightness", "augment_contrast",
-            "counterfactual_starts",
+            "counterfactual_starts", "refine_w_anchor",
         ]  # fmt: skip
         for name in non_negative:
             if getattr(self, name) < 0:

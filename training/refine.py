@@ -11,6 +11,10 @@ and each uncertainty is clipped at `uncertainty_clip` because u = (1+1/ν)β/(α
 α → 1 and a single such step would otherwise own the whole gradient. w_unc = 0 is the paper's
 "-unc" ablation (`--no-uncertainty`).
 
+Safeguard (ours, not the paper's): `refine_w_anchor`·Σ_t |μ_t − μ⁰_t|² keeps the plan near the
+policy refinement started from (μ⁰, frozen), so a world model that is wrong about some actions
+cannot drag the policy far from what it learned to do on real data. 0 is the paper's pure form.
+
 Frozen means eval() + requires_grad False (WorldModel.freeze()): no parameter moves and the
 BatchNorm running statistics stay those learned on real data — in train mode the imagined
 batches would overwrite them. The gradient still flows through the world model to the actions.
@@ -24,6 +28,7 @@ of each small batch of start frames.
 
 from __future__ import annotations
 
+import copy
 from typing import TYPE_CHECKING
 
 import torch
@@ -31,6 +36,7 @@ from torch import nn
 
 from training.data import take
 from training.losses import dirichlet_probability
+from training.models import sample_actions
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 from training.world_training import Targets
 
@@ -40,14 +46,21 @@ if TYPE_CHECKING:
 
 
 class PolicySampler(nn.Module):
-    """forward() = policy.sample(), so DistributedDataParallel sees the sampling pass."""
+    """forward() → (sampled actions, μ), so DistributedDataParallel sees the sampling pass."""
 
     def __init__(self, policy: nn.Module) -> None:
         super().__init__()
         self.policy = policy
 
     def forward(self, image, speed, eps):
-        return self.policy.sample(image, speed, eps)
+        mu, sigma = self.policy(image, speed)
+        return sample_actions(mu, sigma, eps), mu
+
+
+def anchor_penalty(mu: torch.Tensor, mu_start: torch.Tensor) -> torch.Tensor:
+    """Σ over the horizon of |μ − μ_start|², mean over the batch: how far refinement has moved
+    the plan from the policy it started from (the safeguard `refine_w_anchor` weighs)."""
+    return (mu - mu_start).pow(2).sum(dim=-1).sum(dim=1).mean()
 
 
 def imagine(
@@ -126,14 +139,23 @@ def train_refine(
     horizon = cfg.profile_obj.horizon
     weights = (cfg.refine_w_speed, cfg.refine_w_collision, uncertainty_weight(cfg))
     sampler = PolicySampler(policy)
+    # The policy as refinement found it (imitation's, or the previous iteration's), frozen:
+    # the anchor term measures every step's plan against it.
+    start = copy.deepcopy(policy).eval().requires_grad_(False) if cfg.refine_w_anchor else None
 
     def loss_fn(model: nn.Module, batch: dict, step: int):
         eps = noise((len(batch["speed"]), horizon, 2), cfg.seed, step, ctx.dist.rank, device)
-        actions = model(batch["image"], batch["speed"], eps)
+        actions, mu = model(batch["image"], batch["speed"], eps)
         imagined = imagine(
             world_model, targets, batch["image"], batch["speed"], actions, cfg.uncertainty_clip
         )
         loss, metrics = refine_objective(imagined, *weights)
+        if start is not None:
+            with torch.no_grad():
+                mu_start = start(batch["image"], batch["speed"])[0]
+            anchor = anchor_penalty(mu, mu_start)
+            loss = loss + cfg.refine_w_anchor * anchor
+            metrics["anchor"] = anchor.detach()
         return loss, metrics
 
     val_fn = None
