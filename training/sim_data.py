@@ -75,11 +75,15 @@ def layout_for(index: int, layouts: list[str]) -> str:
     return layouts[index % len(layouts)]
 
 
-def demo_jobs(out: Path, tracks: list[int], layouts: list[str], episodes: int) -> list[Job]:
+def demo_jobs(
+    out: Path, tracks: list[int], layouts: list[str], episodes: int, noise: float = 0.0
+) -> list[Job]:
+    """noise: σ of Gaussian noise on every expert command (the paper's imperfect demonstrator)."""
     jobs = []
     for i, track in enumerate(tracks):
         layout = layout_for(i, layouts)
         argv = ("teleop", "--sim", "--expert", "auto", "--record", "--random-start",
+                "--expert-noise", str(noise),
                 "--seed", str(track), "--layout", layout, "--track-seed", str(track),
                 "--episodes", str(episodes), "--laps", "1", "--out", str(out),
                 "--duration", "100000")  # fmt: skip
@@ -171,6 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--jobs", type=int, default=2, help="processes (default: 2)")
         if name == "demos":
             p.add_argument("--episodes", type=int, default=8, help="episodes per placement")
+            p.add_argument("--noise", type=float, default=0.0, help="σ on the expert's commands")
         else:
             p.add_argument("--model", required=True, help="the policy that drives (.onnx)")
             p.add_argument("--seconds", type=float, default=60.0, help="simulated s per placement")
@@ -180,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         tracks = parse_tracks(args.tracks)
         layouts = [x.strip() for x in args.layouts.split(",") if x.strip()]
         if args.what == "demos":
-            jobs = demo_jobs(out, tracks, layouts, args.episodes)
+            jobs = demo_jobs(out, tracks, layouts, args.episodes, args.noise)
         else:
             if not Path(args.model).is_file():
                 raise UserError(f"no such model: {args.model}")
