@@ -85,22 +85,32 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--final-steps", type=int, default=16000, help="steps of each imitation after take-overs"
     )
+    p.add_argument("--demo-tracks", default=DEMO_TRACKS, help="placements of the demonstrations")
+    p.add_argument(
+        "--takeover-tracks",
+        nargs="+",
+        default=list(TAKEOVER_TRACKS),
+        help="placements of each take-over round (one argument per round)",
+    )
+    p.add_argument(
+        "--takeover-seconds", type=float, default=60.0, help="simulated s per take-over placement"
+    )
     p.add_argument("--threads", type=int, default=2, help="torch threads")
     p.add_argument("--jobs", type=int, default=2, help="simulator processes for recording")
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args(argv)
     work, py = Path(a.work).resolve(), sys.executable
     expert = work / "expert"
-    run([py, "-m", "training.sim_data", "demos", "--out", str(expert), "--tracks", DEMO_TRACKS,
+    run([py, "-m", "training.sim_data", "demos", "--out", str(expert), "--tracks", a.demo_tracks,
          "--layouts", LAYOUTS, "--episodes", str(a.episodes), "--jobs", str(a.jobs)],
         work / ".done-demos")  # fmt: skip
     data, policy_dir = [expert], work / "il1"
     run(imitation(py, data, policy_dir, a, a.steps), policy_dir / ".done")
-    for round_, tracks in enumerate(TAKEOVER_TRACKS, start=1):
+    for round_, tracks in enumerate(a.takeover_tracks, start=1):
         takeovers = work / ("takeovers" if round_ == 1 else f"takeovers{round_}")
         run([py, "-m", "training.sim_data", "interventions", "--model",
              str(policy_dir / "policy.onnx"), "--out", str(takeovers), "--tracks", tracks,
-             "--layouts", LAYOUTS, "--seconds", "60", "--jobs", str(a.jobs)],
+             "--layouts", LAYOUTS, "--seconds", str(a.takeover_seconds), "--jobs", str(a.jobs)],
             work / f".done-takeovers{'' if round_ == 1 else round_}")  # fmt: skip
         data, policy_dir = [*data, takeovers], work / f"il{round_ + 1}"
         run(imitation(py, data, policy_dir, a, a.final_steps), policy_dir / ".done")
