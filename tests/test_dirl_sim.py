@@ -1,21 +1,27 @@
-"""bench/dirl_sim.py's bookkeeping: its settings, the paper-style table and the plot.
+"""bench/dirl_sim.py's bookkeeping: its settings, step plan, the frames top-up for IL at equal
+frames, the paper-style table and the plot.
 
-The study itself trains for an hour (`make study`); `python -m bench.dirl_sim --quick` runs
-every step with the tiny profile in minutes and is how the pipeline was checked end to end.
+The study itself trains for hours (`make study`); `python -m bench.dirl_sim --quick` runs every
+step with the tiny profile in minutes and is how the pipeline was checked end to end.
 """
 
 from __future__ import annotations
 
 import pytest
 
-from bench import dirl_sim
+from bench import dirl_sim, dirl_table
 
 
-def _row(model, seed, completion, frames=1000, sigma=0.0, iteration=0, lap=None):
+def _row(model, seed, completions, frames=1000, sigma=0.0, iteration=0, check=None):
+    runs = [
+        {"completion_ratio": c, "collisions_per_min": 3.0, "average_speed": 1.5}
+        for c in completions
+    ]
+    mean = sum(completions) / len(completions)
     return {
         "model": model, "iteration": iteration, "demo_noise": sigma, "seed": seed,
-        "frames": frames, "average_speed": 1.5, "top_speed": 2.0,
-        "completion_ratio": completion, "lap_time": lap, "collisions_per_min": 3.0,
+        "frames": frames, "runs": runs, "counterfactual": check,
+        "aggregate": {"completion_ratio": {"mean": mean, "std": 0.0}},
     }  # fmt: skip
 
 
@@ -29,34 +35,42 @@ def test_settings_parse_tuples_and_refuse_unknown_fields():
         dirl_sim.parse(["--set", "iterations=many"])
 
 
-def test_table_averages_over_seeds_per_model_and_noise():
+def test_the_plan_counts_every_step_the_study_runs():
+    cfg = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
+                          "iterations=2", "--set", "robustness_iterations=1"])  # fmt: skip
+    # demos 2×2; σ 0 per seed: IL 2 + 2 iterations × 3 + -unc 2 + IL equal 2 = 12; σ 1: 2+3+2
+    assert dirl_sim.planned_steps(cfg) == 4 + 2 * 12 + 7
+
+
+def test_top_up_takes_whole_episodes_until_the_frames_are_reached(sim_episodes):
+    from carrt.episodes.reader import list_episodes, read_episode
+
+    sizes = [read_episode(p).n for p in list_episodes([str(sim_episodes)])]
+    picked = dirl_sim.top_up(sim_episodes, sizes[0] + 1)
+    assert len(picked) == 2
+    assert dirl_sim.frames_in(picked) == sizes[0] + sizes[1]
+    with pytest.raises(SystemExit, match="frames"):
+        dirl_sim.top_up(sim_episodes, sum(sizes) + 1)
+
+
+def test_table_pools_runs_over_seeds_per_model_and_noise():
+    check = {"collision_auroc": 0.9, "rank_correlation": 0.4, "speed_mae": 0.1,
+             "speed_mae_constant": 0.3}  # fmt: skip
     rows = [
-        _row("IL", 0, 0.2), _row("IL", 1, 0.4),
-        _row("DIRL iter 1", 0, 0.5, iteration=1, lap=7.0),
-        _row("IL", 0, 0.1, sigma=0.5),
+        _row("IL", 0, [0.2, 0.4]), _row("IL", 1, [0.2, 0.4]),
+        _row("DIRL iter 1", 0, [0.5], iteration=1, check=check),
+        _row("IL", 0, [0.1], sigma=0.5),
     ]  # fmt: skip
-    lines = dirl_sim.table(rows).splitlines()
+    lines = dirl_table.table(rows).splitlines()
     il = next(line for line in lines if line.startswith("| 0 | IL |"))
-    assert "| 2 |" in il and "0.30 ± 0.10" in il
+    assert "| 2 |" in il and "0.30 ± 0.10" in il and il.endswith("| — | — | — |")
     dirl = next(line for line in lines if "DIRL iter 1" in line)
-    assert "| 1 |" in dirl and "| 0.50 |" in dirl and "| 7.00 |" in dirl
-    noisy = next(line for line in lines if line.startswith("| 0.5 | IL |"))
-    assert "| 0.10 |" in noisy and "| — |" in noisy, "no clean lap: no lap time"
+    assert "| 0.50 |" in dirl and "| 0.90 | 0.40 | 0.10 (0.30) |" in dirl
+    assert any(line.startswith("| 0.5 | IL | 1 |") for line in lines)
 
 
 def test_plot_writes_completion_against_frames(tmp_path):
-    rows = [_row("IL", 0, 0.2), _row("DIRL iter 1", 0, 0.3, frames=1500, iteration=1),
-            _row("DIRL -unc iter 1", 0, 0.1, frames=1500, iteration=1)]  # fmt: skip
-    dirl_sim.plot(rows, tmp_path / "c.png")
+    rows = [_row("IL", 0, [0.2]), _row("DIRL iter 1", 0, [0.3], frames=1500, iteration=1),
+            _row("DIRL -unc iter 1", 0, [0.1], frames=1500, iteration=1)]  # fmt: skip
+    dirl_table.plot(rows, tmp_path / "c.png")
     assert (tmp_path / "c.png").stat().st_size > 5000
-
-
-def test_sensitivity_table_lists_each_probed_world_model():
-    probed = _row("DIRL iter 1", 0, 0.3, iteration=1)
-    probed["sensitivity"] = {
-        "speed": [1.86, 1.85, 1.81], "p_collision": [0.05, 0.05, 0.05],
-        "uncertainty": [0.53, 0.53, 0.54],
-    }  # fmt: skip
-    lines = dirl_sim.sensitivity_table([_row("IL", 0, 0.2), probed]).splitlines()
-    assert len(lines) == 3, "the IL row has no world model to probe"
-    assert "1.860 / 1.850 / 1.810" in lines[2] and "| DIRL iter 1 | 0 |" in lines[2]

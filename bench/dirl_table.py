@@ -1,0 +1,77 @@
+"""The study's table and figure (bench/dirl_sim.py): the paper's metrics, mean ± std.
+
+Driving numbers are pooled over every (seed, held-out placement) run of a model, so the spread
+says how much a user's result varies; the world model's counterfactual numbers are the mean over
+seeds (one check per trained world model).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+METRICS = (("completion_ratio", ".2f"), ("collisions_per_min", ".1f"), ("average_speed", ".2f"))
+CHECKS = (("collision_auroc", ".2f"), ("rank_correlation", ".2f"))
+
+
+def cell(values, fmt: str) -> str:
+    vals = [float(v) for v in values if v is not None and np.isfinite(v)]
+    if not vals:
+        return "—"
+    if len(vals) == 1:
+        return format(vals[0], fmt)
+    return f"{format(float(np.mean(vals)), fmt)} ± {format(float(np.std(vals)), fmt)}"
+
+
+def groups(rows: list[dict]) -> dict[tuple, list[dict]]:
+    """(demo noise, model) → its rows, in the order the study ran them."""
+    out: dict[tuple, list[dict]] = {}
+    for r in rows:
+        out.setdefault((r["demo_noise"], r["model"]), []).append(r)
+    return out
+
+
+def table(rows: list[dict]) -> str:
+    lines = [
+        "| demo noise σ | model | seeds | frames | completion | collisions / min | avg m/s "
+        "| WM collision AUROC | WM rank corr. | WM speed MAE (const.) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for (sigma, model), rs in groups(rows).items():
+        runs = [run for r in rs for run in r["runs"]]
+        checks = [r["counterfactual"] or {} for r in rs]
+        driving = " | ".join(cell([run[k] for run in runs], f) for k, f in METRICS)
+        world = " | ".join(cell([c.get(k) for c in checks], f) for k, f in CHECKS)
+        mae = cell([c.get("speed_mae") for c in checks], ".2f")
+        const = cell([c.get("speed_mae_constant") for c in checks], ".2f")
+        speed = "—" if mae == "—" else f"{mae} ({const})"
+        lines.append(
+            f"| {sigma:g} | {model} | {len(rs)} | {cell([r['frames'] for r in rs], '.0f')} "
+            f"| {driving} | {world} | {speed} |"
+        )
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for (sigma, model), rs in groups(rows).items():
+        frames = [r["frames"] for r in rs]
+        completion = [r["aggregate"]["completion_ratio"]["mean"] for r in rs]
+        marker = "s" if model.startswith("IL") else ("x" if "-unc" in model else "o")
+        ax.errorbar(np.mean(frames), np.mean(completion), yerr=np.std(completion), fmt=marker,
+                    capsize=3, label=f"σ {sigma:g} {model}")  # fmt: skip
+    ax.set_xlabel("frames of data")
+    ax.set_ylabel("completion ratio (held-out placements)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title("IL and DIRL iterations, mean ± std over seeds")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
