@@ -55,13 +55,15 @@ test-py310: $(STAMP310) core
 bench: $(STAMP)
 	$(PY) -m bench
 
-# The paper's simulation study, IL against DIRL (about 45 min on 2 cores; results in
-# bench/results/dirl_sim/). `$(PY) -m bench.dirl_sim --quick` runs the pipeline in minutes.
+# The paper's simulation study, IL against DIRL iterations, -unc and IL at equal frames (hours on
+# 2 cores; results in bench/results/dirl_sim/, resumable). `$(PY) -m bench.dirl_sim --quick`
+# runs every step in minutes.
 study: $(STAMP)
 	$(PY) -m bench.dirl_sim
 
 # Reproduce carrt/assets/demo_policy.onnx, the policy `make demo` drives with (demonstrations,
-# imitation, expert take-overs, imitation, int8 export, carrt eval; about 30 min on 2 cores).
+# imitation, two rounds of expert take-overs each followed by imitation, carrt eval; about
+# 56 min on 2 cores).
 demo-policy: $(STAMP) core
 	$(PY) training/demo_policy.py
 
