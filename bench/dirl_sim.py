@@ -132,9 +132,9 @@ def iterate_cmd(cfg: StudyConfig, episodes: list[Path], out: Path, *extra: str) 
 
 
 def frames_in(paths: list[Path]) -> int:
-    from carrt.episodes.reader import list_episodes, read_episode
+    from training.sim_data import count_frames
 
-    return sum(read_episode(p).n for p in list_episodes([str(p) for p in paths]))
+    return count_frames(*paths)
 
 
 def top_up(pool: Path, frames: int) -> list[Path]:

@@ -32,6 +32,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -39,7 +40,7 @@ import torch
 from carrt.policy import file_sha256
 from training import checkpoint as ck
 from training.evaluate import auroc, spearman
-from training.refine import imagine, refine_objective
+from training.refine import imagine, sequence_objective, uncertainty_weight
 from training.world_training import Targets
 
 TARGETS = {"collision_auroc": 0.85, "rank_correlation": 0.5}  # issue 14's bar for trusting it
@@ -84,8 +85,9 @@ def true_objective(data: dict, w_speed: float, w_collision: float) -> np.ndarray
 
 
 @torch.no_grad()
-def score(world_model, norm, data: dict, cfg: dict) -> dict:
-    """The three numbers (and their parts) for one world model on one counterfactual set."""
+def score(world_model, norm, data: dict, cfg) -> dict:
+    """The three numbers (and their parts) for one world model on one counterfactual set; cfg:
+    the refinement weights (an IterateConfig, or its fields), -unc's zero included."""
     world_model.eval()
     targets = Targets(norm)
     n, k, h, _ = data["actions"].shape
@@ -93,25 +95,23 @@ def score(world_model, norm, data: dict, cfg: dict) -> dict:
         raise SystemExit(
             f"counterfactual: horizon {h} in the set, {world_model.horizon} in the model"
         )
-    weights = (cfg["refine_w_speed"], cfg["refine_w_collision"], cfg["refine_w_uncertainty"])
+    weights = (cfg.refine_w_speed, cfg.refine_w_collision, uncertainty_weight(cfg))
     imagined_speed, risk, objective = np.zeros((n, k, h)), np.zeros((n, k)), np.zeros((n, k))
     for i in range(n):
         image = torch.from_numpy(data["image"][i]).expand(k, *data["image"].shape[1:])
         speed = torch.full((k, 1), float(data["speed"][i]))
         actions = torch.from_numpy(data["actions"][i])
-        out = imagine(world_model, targets, image, speed, actions, cfg["uncertainty_clip"])
+        out = imagine(world_model, targets, image, speed, actions, cfg.uncertainty_clip)
         imagined_speed[i] = out["speed"].numpy()
         risk[i] = out["p_collision"].max(dim=1).values.numpy()
-        for j in range(k):
-            one = {key: value[j : j + 1] for key, value in out.items()}
-            objective[i, j] = float(refine_objective(one, *weights)[0])
+        objective[i] = sequence_objective(out, *weights).numpy()
     collided = data["true_collision"].max(axis=2)
     auroc, pairs = within_start_auroc(risk, collided)
     # speed: steps before the first collision (the collision step's speed is the crash's)
     before = (data["mask"] > 0) & (np.cumsum(data["true_collision"], axis=2) == 0)
     true_speed = data["true_speed"]
     baseline = np.broadcast_to(data["speed"][:, None, None], true_speed.shape)
-    truth = true_objective(data, cfg["refine_w_speed"], cfg["refine_w_collision"])
+    truth = true_objective(data, cfg.refine_w_speed, cfg.refine_w_collision)
     rhos = [spearman(objective[i], truth[i]) for i in range(n)]
     return {
         "starts": int(n),
@@ -139,9 +139,7 @@ def check_run(run: Path, data_path: Path | None, layout: str, tracks: str, start
     from training.data import Normalisation
 
     world_model, ckpt = ck.load_world_model(wm_path)
-    cfg = ckpt["config"]
-    if cfg.get("no_uncertainty"):
-        cfg = {**cfg, "refine_w_uncertainty": 0.0}
+    cfg = SimpleNamespace(**ckpt["config"])  # the run's IterateConfig, as its checkpoint saved it
     norm = Normalisation.from_dict(ckpt["normalisation"])
     result = score(world_model, norm, load(data_path), cfg)
     result["data"] = str(data_path)

@@ -80,16 +80,23 @@ def imagine(
     }
 
 
-def refine_objective(
+def sequence_objective(
     imagined: dict[str, torch.Tensor], w_speed: float, w_collision: float, w_uncertainty: float
-) -> tuple[torch.Tensor, dict]:
-    """Sum over the horizon, mean over the batch."""
+) -> torch.Tensor:
+    """(N,): each imagined sequence's objective, summed over the horizon (lower is better)."""
     u = imagined["u_image"] + imagined["u_speed"] + imagined["u_collision"]
     per_step = (
         -w_speed * imagined["speed"] + w_collision * imagined["p_collision"] + w_uncertainty * u
     )
+    return per_step.sum(dim=1)
+
+
+def refine_objective(
+    imagined: dict[str, torch.Tensor], w_speed: float, w_collision: float, w_uncertainty: float
+) -> tuple[torch.Tensor, dict]:
+    """Sum over the horizon, mean over the batch."""
     metrics = {k: v.detach().mean() for k, v in imagined.items()}
-    return per_step.sum(dim=1).mean(), metrics
+    return sequence_objective(imagined, w_speed, w_collision, w_uncertainty).mean(), metrics
 
 
 def noise(shape, seed: int, step: int, rank: int, device) -> torch.Tensor:

@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import EXIT_USAGE, UserError
+from carrt.eval_cmd import parse_int_list
 
 EVALUATION_TRACKS = frozenset(range(100, 105))  # held out: never recorded for training
 TASKS_PER_WORKER = 25  # placements a worker process runs before a fresh pool replaces it
@@ -52,22 +53,11 @@ class Job:
 
 def parse_tracks(text: str) -> list[int]:
     """'1000-1149' or '1,2,5-7' → sorted unique placement seeds, never an evaluation one."""
-    tracks: set[int] = set()
-    try:
-        for part in filter(None, (p.strip() for p in text.split(","))):
-            lo, _, hi = part.partition("-")
-            first, last = int(lo), int(hi or lo)
-            if last < first:
-                raise ValueError(part)
-            tracks.update(range(first, last + 1))
-    except ValueError as exc:
-        raise UserError(f"bad --tracks {text!r}: use e.g. 1000-1149 or 1,2,5-7") from exc
-    if not tracks:
-        raise UserError("--tracks names no placement")
-    held_out = sorted(tracks & EVALUATION_TRACKS)
+    tracks = sorted(set(parse_int_list(text, "tracks")))
+    held_out = sorted(set(tracks) & EVALUATION_TRACKS)
     if held_out:
         raise UserError(f"placements {held_out} are held out for evaluation: not for training")
-    return sorted(tracks)
+    return tracks
 
 
 def layout_for(index: int, layouts: list[str]) -> str:

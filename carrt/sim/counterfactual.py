@@ -30,6 +30,7 @@ import sys
 import numpy as np
 
 from carrt.errors import EXIT_USAGE, UserError
+from carrt.eval_cmd import parse_int_list
 from carrt.sim.expert import ScriptedExpert
 from carrt.sim.render import Renderer
 from carrt.sim.track import LAYOUTS, project
@@ -74,17 +75,23 @@ def clone(world: SimWorld) -> SimWorld:
     return twin
 
 
+def hold(world: SimWorld, steering: float, throttle: float, throttle_now: float) -> float:
+    """One control period of a command, as the board applies it (throttle rises at most
+    THROTTLE_RISE_PER_S, falls at once); stops at a collision. Returns the throttle reached."""
+    for _ in range(round(CONTROL_PERIOD_S / CHUNK_S)):
+        throttle_now = min(float(throttle), throttle_now + THROTTLE_RISE_PER_S * CHUNK_S)
+        if world.step(CHUNK_S, float(steering), throttle_now).collision:
+            break
+    return throttle_now
+
+
 def execute(world: SimWorld, actions: np.ndarray, throttle_now: float) -> dict[str, np.ndarray]:
     """Run (H, 2) actions open-loop: per step the speed after it, whether it collided, a mask."""
     h = len(actions)
     speed, collision, mask = np.zeros(h, np.float32), np.zeros(h, np.float32), np.zeros(h)
     for k, (steering, throttle) in enumerate(actions):
         mask[k] = 1.0
-        for _ in range(round(CONTROL_PERIOD_S / CHUNK_S)):
-            throttle_now = min(float(throttle), throttle_now + THROTTLE_RISE_PER_S * CHUNK_S)
-            info = world.step(CHUNK_S, float(steering), throttle_now)
-            if info.collision:
-                break
+        throttle_now = hold(world, steering, throttle, throttle_now)
         speed[k] = world.car.v
         if world.collided:
             collision[k] = 1.0
@@ -103,9 +110,7 @@ def start_state(world: SimWorld, rng: np.random.Generator) -> tuple[SimWorld, fl
     for _ in range(int(rng.integers(5, 16))):
         steering, throttle = expert.act(world.car)
         steering = float(np.clip(steering + rng.normal(0.0, 0.3), -1.0, 1.0))
-        for _ in range(round(CONTROL_PERIOD_S / CHUNK_S)):
-            throttle_now = min(throttle, throttle_now + THROTTLE_RISE_PER_S * CHUNK_S)
-            world.step(CHUNK_S, steering, throttle_now)
+        throttle_now = hold(world, steering, throttle, throttle_now)
         if world.collided:
             return None
     return world, throttle_now
@@ -158,14 +163,6 @@ def generate(
     }
 
 
-def _tracks(text: str) -> list[int]:
-    tracks: list[int] = []
-    for part in filter(None, (p.strip() for p in text.split(","))):
-        lo, _, hi = part.partition("-")
-        tracks += range(int(lo), int(hi or lo) + 1)
-    return tracks
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m carrt.sim.counterfactual", description=__doc__)
     p.add_argument("--model", required=True, help="policy .onnx whose plans start the sequences")
@@ -178,10 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         from carrt.policy import OnnxPolicy
 
-        try:
-            tracks = _tracks(a.tracks)
-        except ValueError:
-            raise UserError(f"bad --tracks {a.tracks!r}: use e.g. 200-204 or 1,2,5-7") from None
+        tracks = parse_int_list(a.tracks, "tracks")
         if not tracks or a.starts < 1:
             raise UserError("need at least one placement and --starts >= 1")
         policy = OnnxPolicy(a.model, intra_op_threads=1)
