@@ -53,3 +53,24 @@ def pytest_ignore_collect(collection_path, config):
     ):
         return True
     return None
+
+
+# A process that imported torch has crashed AFTER the suite finished, while the interpreter
+# shut down: a general protection fault inside libtorch_cpu.so (same offset every time, in about
+# one in five runs of the training tests; seen before and after this session's changes; cause
+# not found, see docs/architecture.md). Every test had passed and been reported. Such a process
+# ends with the suite's own exit status, without running native static destructors.
+_exit_status: list[int] = []
+
+
+def pytest_sessionfinish(session, exitstatus):
+    _exit_status.append(int(exitstatus))
+
+
+def pytest_unconfigure(config):
+    import sys
+
+    if _exit_status and "torch" in sys.modules and not hasattr(config, "workerinput"):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(_exit_status[-1])
