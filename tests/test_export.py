@@ -253,3 +253,53 @@ def test_cli_exports_and_refuses_a_missing_checkpoint(checkpoint, sim_episodes, 
     lines = missing.stderr.strip().splitlines()
     assert len(lines) == 1 and "nope.pt" in lines[0] and "no such file" in lines[0]
     assert not (tmp_path / "x.onnx").exists()
+
+
+# ----------------------------------------------------------------------------- throttle ceiling
+def test_a_throttle_ceiling_caps_every_plan_and_keeps_the_network(exported, sim_episodes, tmp_path):
+    from export.throttle_ceiling import apply_throttle_ceiling
+
+    src, _ = exported
+    capped = tmp_path / "capped.onnx"
+    apply_throttle_ceiling(src, capped, 0.3)
+    before, after = OnnxPolicy(src), OnnxPolicy(capped)
+    assert float(after.action_high[1]) == pytest.approx(0.3)
+    assert float(after.action_high[0]) == float(before.action_high[0])
+    assert after.metadata["carrt.throttle_ceiling"] == "0.3"
+    frames = sample_frames([str(sim_episodes)], max_frames=64, seed=0)
+    raw_above = 0
+    for image, speed in zip(frames.images, frames.speeds[:, 0], strict=True):
+        plan_before, plan_after = before.predict(image, speed), after.predict(image, speed)
+        raw_above += int((plan_before.mu[:, 1] > 0.3).sum())
+        assert (plan_after.mu[:, 1] <= np.float32(0.3)).all()
+        np.testing.assert_array_equal(plan_after.mu[:, 0], plan_before.mu[:, 0])
+        np.testing.assert_array_equal(plan_after.sigma, plan_before.sigma)
+    assert raw_above > 0, "the uncapped plans never exceeded the ceiling: nothing was tested"
+    assert onnx.load(str(capped)).graph == onnx.load(str(src)).graph
+
+
+@pytest.mark.parametrize("ceiling", ["nan", "inf", "0", "1.5", "-0.2"])
+def test_a_bad_throttle_ceiling_is_one_line_and_exit_2(exported, tmp_path, ceiling):
+    src, _ = exported
+    out = tmp_path / "x.onnx"
+    done = subprocess.run(
+        [sys.executable, "-m", "export.throttle_ceiling", str(src), "-o", str(out),
+         "--max-throttle", ceiling],
+        capture_output=True, text=True, cwd=ROOT,
+    )  # fmt: skip
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--max-throttle" in lines[0], done.stderr
+    assert not out.exists()
+
+
+def test_a_throttle_ceiling_on_a_file_that_is_no_policy_is_refused(tmp_path):
+    from export.throttle_ceiling import apply_throttle_ceiling
+
+    bogus = tmp_path / "bogus.onnx"
+    bogus.write_bytes(b"not a model")
+    with pytest.raises(UserError, match=r"bogus\.onnx"):
+        apply_throttle_ceiling(bogus, tmp_path / "out.onnx", 0.8)
+    with pytest.raises(UserError, match="no such file"):
+        apply_throttle_ceiling(tmp_path / "missing.onnx", tmp_path / "out.onnx", 0.8)
+    assert not (tmp_path / "out.onnx").exists()
