@@ -65,11 +65,12 @@ class StudyConfig:
     iterations: int = 3  # DIRL iterations (σ = 0)
     robustness_iterations: int = 1  # DIRL iterations for σ > 0
     drive_seconds: float = 15.0  # simulated s per training placement per DIRL iteration
+    drive_explore: bool = False  # noise injection on the policy's commands in those drives
     imitation_steps: int = 3000
     world_model_steps: int = 3000  # iteration 1
     world_model_steps_next: int = 1500  # later iterations continue the previous world model
     refine_steps: int = 300
-    refine_w_anchor: float = 0.0  # the safeguard (training/refine.py); 0: the paper's form
+    refine_w_anchor: float = 10.0  # the safeguard (training/refine.py); 0: the paper's form
     eval_seconds: float = 60.0  # simulated seconds per held-out placement (a lap is ~7 s)
     threads: int = 2  # torch threads
     jobs: int = 2  # simulator processes
@@ -206,7 +207,8 @@ def chain(cfg: StudyConfig, step: Step, sigma: float, seed: int, iterations: int
         step(f"drive-{tag}-iter{k}", py("-m", "training.sim_data", "drives", "--model",
              str(previous / "policy.onnx"), "--out", str(drives), "--tracks", cfg.train_tracks,
              "--layouts", cfg.layout, "--seconds", str(cfg.drive_seconds), "--jobs",
-             str(cfg.jobs)), drives / ".done")  # fmt: skip
+             str(cfg.jobs), *(["--explore"] if cfg.drive_explore else [])),
+             drives / ".done")  # fmt: skip
         data = [*data, drives]
         run = runs / f"dirl{k}"
         wm_steps = cfg.world_model_steps if k == 1 else cfg.world_model_steps_next
@@ -258,9 +260,11 @@ def parse(argv: list[str] | None) -> StudyConfig:
             if isinstance(current, tuple):
                 kind = float if name == "demo_noise" else int
                 value = tuple(kind(v) for v in text.split(",") if v.strip())
+            elif isinstance(current, bool):  # bool("false") is True: spell it out
+                value = {"true": True, "1": True, "false": False, "0": False}[text.lower()]
             else:
                 value = type(current)(text)
-        except ValueError:
+        except (ValueError, KeyError):
             p.error(f"--set {item}: not a valid value for {name}")
         cfg = dataclasses.replace(cfg, **{name: value})
     return cfg

@@ -131,6 +131,11 @@ class NoiseConfig:
     period_s: float = opt(
         10.0, "noisy and clean stretches alternate within periods of this length", lo=1.0, hi=600.0
     )
+    during_auto: bool = opt(
+        False,
+        "also perturb the policy's commands in AUTO while recording (world-model exploration "
+        "data: varied actions near obstacles); the person keeps the override",
+    )
 
 
 @dataclass

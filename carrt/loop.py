@@ -236,7 +236,7 @@ class ControlLoop:
         if decision.mode != Mode.ESTOP:
             self._collision_ended = False  # a later e-stop by hand is not this collision
         executed, noisy = (decision.steering, decision.throttle), False
-        if parts.noise is not None and self._recording and decision.mode == Mode.MANUAL:
+        if parts.noise is not None and self._recording and parts.noise.perturbs(decision.mode):
             ns, nt, noisy = parts.noise.sample(now)
             if noisy:
                 executed = parts.noise.apply(executed, (ns, nt))

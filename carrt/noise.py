@@ -28,6 +28,7 @@ from typing import NamedTuple
 import numpy as np
 
 from carrt.config import NoiseConfig
+from carrt.interfaces import Mode
 
 STEER_LIMITS = (-1.0, 1.0)
 THROTTLE_LIMITS = (-1.0, 1.0)
@@ -69,6 +70,12 @@ class NoiseInjector:
         self._cache: dict[int, _Period] = {}
 
     apply = staticmethod(apply)  # so the loop can hold one object: injector.apply(human, noise)
+
+    def perturbs(self, mode: Mode) -> bool:
+        """Whether commands in `mode` get noise: MANUAL always (the paper's recovery data), AUTO
+        only with `during_auto` (the policy's own mistakes and recoveries, for the world model).
+        Never a stopped or failsafe mode: noise must not move a car that is meant to stand."""
+        return mode == Mode.MANUAL or (self.config.during_auto and mode == Mode.AUTO)
 
     def sample(self, t: float) -> NoiseSample:
         period_s = self.config.period_s

@@ -231,7 +231,11 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             joystick=rig.joystick,
             policy=policy,
             sink=sink,
-            noise=NoiseInjector(config.noise, seed=args.seed) if policy is None else None,
+            noise=(
+                NoiseInjector(config.noise, seed=args.seed)
+                if policy is None or config.noise.during_auto
+                else None
+            ),
             collisions=rig.collisions,
         )
         metadata = _episode_metadata(config, policy, link, "drive" if policy else "teleop")

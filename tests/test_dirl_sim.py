@@ -33,6 +33,10 @@ def test_settings_parse_tuples_and_refuse_unknown_fields():
         dirl_sim.parse(["--set", "colour=red"])
     with pytest.raises(SystemExit):
         dirl_sim.parse(["--set", "iterations=many"])
+    assert dirl_sim.parse(["--set", "drive_explore=false"]).drive_explore is False
+    assert dirl_sim.parse(["--set", "drive_explore=true"]).drive_explore is True
+    with pytest.raises(SystemExit):
+        dirl_sim.parse(["--set", "drive_explore=maybe"])
 
 
 def test_the_plan_counts_every_step_the_study_runs():

@@ -95,6 +95,38 @@ def test_autopilot_resets_after_collisions_and_labels_them(tmp_path, capsys):
     assert "interv" in report and "e-stop" in report, "and the real-car table from the episodes"
 
 
+def _autopilot_steps(tmp_path, name: str, *settings: str) -> dict:
+    """A gentle constant policy on the empty layout, recorded for 20 simulated s."""
+    model = build_policy(tmp_path / f"{name}.onnx", steering=0.0, throttle=(0.3, 0.0))
+    out = tmp_path / name
+    code = CliRun(
+        ["drive", "--sim", "--autopilot", "--model", str(model), "--record", "--layout", "empty",
+         "--out", str(out), "--duration", "20", "--set", "noise.period_s=2.0", *settings]
+    ).result(timeout_s=120)  # fmt: skip
+    assert code == 0
+    return np.concatenate([read_episode(p).steps for p in list_episodes(out)])
+
+
+def test_noise_perturbs_the_policy_only_when_asked(tmp_path):
+    """noise.during_auto: the world model's exploration data; off by default (AUTO untouched)."""
+    plain = _autopilot_steps(tmp_path, "plain")
+    auto = plain["mode"] == Mode.AUTO
+    assert auto.sum() > 100
+    assert not plain["noise"][auto].any()
+    np.testing.assert_allclose(plain["executed_action"][auto], plain["policy_action"][auto])
+
+    steps = _autopilot_steps(tmp_path, "explore", "--set", "noise.during_auto=true")
+    auto = steps["mode"] == Mode.AUTO
+    noisy = steps["noise"].astype(bool) & auto
+    assert 0.3 < noisy.sum() / auto.sum() < 0.7, "half of the AUTO time, as in teleop"
+    delta = steps["executed_action"] - steps["policy_action"]
+    np.testing.assert_allclose(delta[auto & ~noisy], 0.0, atol=1e-6)
+    assert np.abs(delta[noisy]).max() > 0.05 and np.abs(delta[noisy]).max() <= 0.3 + 1e-6
+    stopped = steps["mode"] != Mode.AUTO
+    stopped &= steps["mode"] != Mode.MANUAL
+    assert not steps["noise"][stopped].any(), "never noise on a car that is meant to stand"
+
+
 def test_keyboard_window_drives_the_simulator(tmp_path):
     import pygame
 

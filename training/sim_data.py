@@ -89,11 +89,15 @@ def drive_jobs(
     seconds: float,
     *,
     intervene: bool,
+    explore: bool = False,
 ) -> list[Job]:
     """The policy drives each placement; with `intervene` the expert takes over before a crash,
-    without it every crash is recorded (labelled, then the auto-reset) for the world model."""
+    without it every crash is recorded (labelled, then the auto-reset) for the world model.
+    `explore`: the loop's noise injection perturbs the policy's commands too (noise.during_auto),
+    so the crashes and near misses come from varied actions, not only the policy's own."""
     jobs = []
     take_over = ("--expert-intervene",) if intervene else ()
+    take_over += ("--set", "noise.during_auto=true") if explore else ()
     for i, track in enumerate(tracks):
         layout = layout_for(i, layouts)
         argv = ("drive", "--sim", "--autopilot", *take_over, "--model", str(model),
@@ -169,6 +173,11 @@ def main(argv: list[str] | None = None) -> int:
         else:
             p.add_argument("--model", required=True, help="the policy that drives (.onnx)")
             p.add_argument("--seconds", type=float, default=60.0, help="simulated s per placement")
+        if name == "drives":
+            p.add_argument(
+                "--explore", action="store_true",
+                help="noise injection on the policy's commands half of the time (varied actions)",
+            )  # fmt: skip
     args = parser.parse_args(argv)
     try:
         out = Path(args.out)
@@ -181,8 +190,9 @@ def main(argv: list[str] | None = None) -> int:
                 raise UserError(f"no such model: {args.model}")
             intervene = args.what == "interventions"
             jobs = drive_jobs(
-                out, Path(args.model), tracks, layouts, args.seconds, intervene=intervene
-            )
+                out, Path(args.model), tracks, layouts, args.seconds, intervene=intervene,
+                explore=getattr(args, "explore", False),
+            )  # fmt: skip
         out.mkdir(parents=True, exist_ok=True)
         run_jobs(jobs, max(1, args.jobs), args.what)
         print(f"{out}: {count_frames(out):,} frames")
