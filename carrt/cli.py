@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import signal
 import sys
 
 from carrt import __version__
@@ -18,6 +20,8 @@ from carrt.errors import EXIT_USAGE, UserError
 from carrt.model_contract import ContractError
 from firmware_bridge.link import LinkError
 from firmware_bridge.native import FirmwareBuildError
+
+EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE  # what a shell reports for a tool its reader closed
 
 # module: function that registers its sub-command(s)
 COMMANDS = (
@@ -59,6 +63,12 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # `carrt report DIR | head`: the reader has all it wanted. Point stdout at /dev/null so
+        # the interpreter's final flush does not raise again, and exit as `yes | head` would.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ must not silently leave the car at full throttle.
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -191,6 +192,10 @@ def _check_value(key: str, spec: dataclasses.Field, value: Any) -> Any:
         raise UserError(f"config {key}: expected {kind.__name__}, got {value!r}")
     if kind is int and isinstance(value, bool):
         raise UserError(f"config {key}: expected int, got {value!r}")
+    if kind is float and not math.isfinite(value):
+        # NaN compares False with every bound, so a range check alone would let it through
+        # (a NaN max_age_s silently switched the stale-frame gate off).
+        raise UserError(f"config {key}: expected a finite number, got {value!r}")
     meta = spec.metadata
     if meta.get("choices") and value not in meta["choices"]:
         raise UserError(f"config {key}: {value!r} is not one of {', '.join(meta['choices'])}")
@@ -245,6 +250,8 @@ def load(path: str | Path | None, overrides: list[str] | None = None) -> CarConf
     data: dict[str, Any] = {}
     if path is not None:
         path = Path(path)
+        if path.is_dir():
+            raise UserError(f"config file {path} is a directory, expected a .toml file")
         if not path.is_file():
             raise UserError(f"config file {path} does not exist (create one: carrt config init)")
         try:

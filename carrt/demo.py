@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from carrt.check import run_check
+from carrt.shipped import SHIPPED_MODELS
 from firmware_bridge import messages as m
 from firmware_bridge.link import BoardLink
 from firmware_bridge.virtual import VirtualBoard
@@ -45,7 +46,7 @@ def _say(text: str) -> None:
     print(text, flush=True)
 
 
-DEMO_POLICY = Path(__file__).resolve().parent / "assets" / "demo_policy.onnx"
+DEMO_POLICY = SHIPPED_MODELS["demo"]
 HELD_OUT_TRACK = 101  # obstacle placement never used for the shipped policy's training data
 
 

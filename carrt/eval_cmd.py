@@ -26,7 +26,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "table: completion, collisions/min, average speed, laps (mean ± std)",
     )
     who = parser.add_mutually_exclusive_group(required=True)
-    who.add_argument("--model", help="policy .onnx to evaluate")
+    who.add_argument("--model", help="policy .onnx to evaluate, or `demo` for the shipped one")
     who.add_argument("--expert", action="store_true", help="evaluate the scripted expert")
     parser.add_argument("--layout", default="hard", choices=LAYOUTS)
     parser.add_argument(
@@ -85,10 +85,10 @@ def run_eval(args: argparse.Namespace) -> int:
         raise UserError(f"--jobs: expected at least 1, got {args.jobs}")
     model = None
     if args.model is not None:
-        path = Path(args.model)
-        if not path.is_file():
-            raise UserError(f"model {path}: no such file")
         from carrt.policy import OnnxPolicy
+        from carrt.shipped import resolve_model
+
+        path = resolve_model(args.model)
 
         OnnxPolicy(path)  # refuses a model that breaks the contract, once, before any run
         model = str(path)

@@ -22,6 +22,7 @@ from carrt import model_contract as mc
 from carrt.config import LoopConfig
 from carrt.errors import UserError
 from carrt.interfaces import CONTROL_PERIOD_S, IMAGE_SHAPE, Plan
+from carrt.shipped import resolve_model
 
 CPU = "CPUExecutionProvider"
 TENSORRT = "TensorrtExecutionProvider"
@@ -98,9 +99,7 @@ class OnnxPolicy:
         intra_op_threads: int = 0,
         control_period_s: float | None = CONTROL_PERIOD_S,
     ) -> None:
-        self.path = Path(path)
-        if not self.path.is_file():
-            raise UserError(f"model {self.path}: no such file")
+        self.path = resolve_model(path)
         self.size_bytes = self.path.stat().st_size
         self.sha256 = file_sha256(self.path)
         self.available_providers = list(ort.get_available_providers())

@@ -52,7 +52,10 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     drive = subparsers.add_parser(
         "drive", help="let a policy drive; the joystick overrides and e-stops"
     )
-    drive.add_argument("--model", required=True, help="policy .onnx exported by `python -m export`")
+    drive.add_argument(
+        "--model", required=True,
+        help="policy .onnx exported by `python -m export`, or `demo` for the shipped policy",
+    )  # fmt: skip
     drive.add_argument(
         "--autopilot",
         action="store_true",

@@ -146,3 +146,40 @@ def test_killed_mid_recording_keeps_earlier_episodes_and_the_current_one(tmp_pat
     assert earlier.meta.get("end_reason") == "disarmed"
     assert current.n >= 15, "at least the part more than a second old survives"
     assert current.duration_s >= 1.5
+
+
+def test_a_directory_where_a_file_belongs_is_named_as_such(tmp_path):
+    assert_one_line_error(carrt("config", "check", tmp_path), "is a directory")
+    assert_one_line_error(carrt("drive", "--model", tmp_path), "is a directory")
+    assert_one_line_error(carrt("eval", "--model", tmp_path), "is a directory")
+
+
+def test_episodes_ls_prints_nothing_before_its_error(tmp_path):
+    from episode_factory import make_step, write_episode
+
+    steps = [make_step(i) for i in range(5)]
+    write_episode(tmp_path / "eps", steps)
+    time.sleep(1.1)  # episode names carry the second they began
+    bad = write_episode(tmp_path / "eps", steps)
+    (bad / "meta.json").write_text("{ not json")
+    result = carrt("episodes", "ls", tmp_path / "eps")
+    assert_one_line_error(result, bad.name)
+    assert result.stdout == "", "no header or rows before the error"
+
+
+@pytest.mark.parametrize("command", ["report", "episodes show", "episodes ls"])
+def test_a_reader_that_stops_early_gets_no_traceback(tmp_path, command):
+    """`carrt report DIR | head -1`: the pipe closes before carrt has printed."""
+    from episode_factory import make_step, write_episode
+
+    episode = write_episode(tmp_path / "eps", [make_step(i) for i in range(20)])
+    target = episode if command == "episodes show" else tmp_path / "eps"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "carrt", *command.split(), str(target)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV,
+    )  # fmt: skip
+    proc.stdout.close()  # like `head` exiting before the first line arrives
+    err = proc.stderr.read().decode()
+    code = proc.wait(timeout=60)
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err
+    assert code == 141, (code, err)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 
@@ -83,4 +84,36 @@ def test_config_init_and_check_commands(tmp_path):
     assert bad.returncode == 2
     assert bad.stderr.strip() == (
         "carrt config: error: config pwm.max_forward: 7.0 is above the maximum 1.0"
+    )
+
+
+FLOAT_KEYS = [
+    f"{section}.{f.name}"
+    for section in car_config.SECTIONS
+    for f in dataclasses.fields(getattr(car_config.CarConfig(), section))
+    if isinstance(getattr(getattr(car_config.CarConfig(), section), f.name), float)
+]
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_every_float_key_refuses_nan_and_infinities(tmp_path, value):
+    """NaN compares False with every bound: without its own check it passed as 'ok'."""
+    assert len(FLOAT_KEYS) >= 10 and "camera.max_age_s" in FLOAT_KEYS
+    for key in FLOAT_KEYS:
+        section, name = key.split(".")
+        path = tmp_path / "car.toml"
+        path.write_text(f"[{section}]\n{name} = {value}\n")
+        with pytest.raises(UserError) as info:
+            car_config.load(path)
+        assert str(info.value) == f"config {key}: expected a finite number, got {float(value)!r}"
+        with pytest.raises(UserError, match="finite"):
+            car_config.load(None, [f"{key}={value}"])
+
+
+def test_config_check_refuses_nan_in_one_line(tmp_path):
+    (tmp_path / "car.toml").write_text("[camera]\nmax_age_s = nan\n")
+    bad = run_carrt("config", "check", "car.toml", cwd=tmp_path)
+    assert bad.returncode == 2
+    assert bad.stderr.strip() == (
+        "carrt config: error: config camera.max_age_s: expected a finite number, got nan"
     )

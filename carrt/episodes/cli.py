@@ -49,10 +49,10 @@ def run_ls(args: argparse.Namespace) -> int:
     from carrt.episodes.summary import summarize
 
     paths = list_episodes(args.dirs)
+    summaries = [summarize(read_episode(path)) for path in paths]  # errors before any output
     print(f"{'episode':<22} {'duration':>9} {'frames':>7} {'avg m/s':>8}  end")
     total_s = total_frames = 0
-    for path in paths:
-        s = summarize(read_episode(path))
+    for s in summaries:
         total_s += s["duration_s"]
         total_frames += s["frames"]
         end = s["end_reason"] + (" (torn tail)" if s["torn_tail"] else "")
