@@ -28,6 +28,7 @@ from carrt.arbitration import Arbiter, ArbiterInputs, Decision
 from carrt.camera import preprocess
 from carrt.config import CarConfig
 from carrt.interfaces import Camera, Clock, EpisodeSink, Joystick, Mode, Policy, Step
+from carrt.laps import LapCounter
 from carrt.noise import NoiseInjector
 from carrt.plan import PlanBuffer
 from carrt.speed import SpeedEstimator
@@ -65,6 +66,8 @@ class LoopSummary:
     tick_lateness_ms: tuple[float, float] = (math.nan, math.nan)  # tick start - its deadline
     max_tick_lateness_ms: float = math.nan
     interventions: int = 0
+    collisions: int = 0
+    laps: int = 0  # by carrt/laps.py's rule, the same count as the simulator's and carrt report's
     estops: int = 0
     episodes: int = 0
     recorded_steps: int = 0
@@ -91,7 +94,8 @@ class LoopSummary:
             f"  tick lateness {p50:7.2f} {p99:8.2f}   (max {self.max_tick_lateness_ms:.2f})"
         )
         lines.append(
-            f"  interventions {self.interventions}, e-stops {self.estops}, episodes "
+            f"  collisions {self.collisions}, interventions {self.interventions}, laps "
+            f"{self.laps}, e-stops {self.estops}, episodes "
             f"{self.episodes}, steps recorded {self.recorded_steps}, dropped {self.dropped_steps}"
         )
         return "\n".join(lines)
@@ -147,6 +151,8 @@ class ControlLoop:
         self._last_frame_seq = -1
         self._last_message = ""
         self._collision_ended = False
+        self._lap_counter = LapCounter()
+        self._was_driving = False
         self.log = log
 
     # ------------------------------------------------------------------ public
@@ -195,6 +201,7 @@ class ControlLoop:
         if collided:
             self.arbiter.estop("collision")
             self._collision_ended = True
+            self.summary.collisions += 1
         sections["capture"] = clock.now() - t
 
         t = clock.now()
@@ -233,6 +240,7 @@ class ControlLoop:
             )
         )
         self._report(decision)
+        self._count_laps(decision.mode, joystick.events.lap)
         if decision.mode != Mode.ESTOP:
             self._collision_ended = False  # a later e-stop by hand is not this collision
         executed, noisy = (decision.steering, decision.throttle), False
@@ -327,14 +335,23 @@ class ControlLoop:
             else:
                 self.summary.dropped_steps += 1
         if not driving or self._record_paused:
-            reason = {Mode.ESTOP: "estop", Mode.DISARMED: "disarmed"}.get(decision.mode, "stopped")
-            if decision.mode == Mode.ESTOP and self._collision_ended:
-                reason = "collision"
-            if decision.mode == Mode.DISARMED and self.parts.link.board_state == m.State.FAILSAFE:
-                reason = "failsafe"
-            sink.end(reason)
+            sink.end(self._end_reason(decision.mode))
             self._recording = False
             self._collision_ended = False
+
+    def _end_reason(self, mode: Mode) -> str:
+        failsafe = self.parts.link.board_state == m.State.FAILSAFE
+        return LapCounter.end_reason(mode, self._collision_ended, failsafe)
+
+    def _count_laps(self, mode: Mode, mark: bool) -> None:
+        """The summary's laps and collisions, by the rule carrt report uses (carrt/laps.py)."""
+        driving = mode in (Mode.MANUAL, Mode.AUTO)
+        if self._was_driving and not driving:
+            self._lap_counter.trial_end(self._end_reason(mode))
+        self._was_driving = driving
+        if mark:
+            self._lap_counter.mark()
+        self.summary.laps = self._lap_counter.laps
 
     # ------------------------------------------------------------------ exit
     def _shutdown(self, duration: float, ticks: int) -> None:

@@ -6,9 +6,13 @@ e-stopped and reset spans several episodes) or each episode alone with --per-epi
 
 Lap times come only from lap marks (the lap button, pressed each time the car crosses the line,
 the start included: N marks make N−1 laps). Without marks there are no lap times: the report says
-so rather than guessing from distance. Time is the measured frame capture times; excluded are
-(a) the stretches after a collision or e-stop while the car is DISARMED or in ESTOP, until it is
-driving again (the reset), and (b) anything between two episodes, which was not recorded.
+so rather than guessing from distance. A trial goes on across an episode that ended in a
+collision, an e-stop or a failsafe (the car was reset and re-armed); a deliberate disarm closes
+it, so the next episode's first mark starts a lap and closes none (carrt/laps.py, the rule the
+loop's summary and the simulator count by too). Time is the measured frame capture times;
+excluded are (a) the stretches after a collision or e-stop while the car is DISARMED or in ESTOP,
+until it is driving again (the reset), and (b) anything between two episodes, which was not
+recorded.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from carrt.episodes.reader import (
     speed_stats,
 )
 from carrt.errors import UserError
+from carrt.laps import TRIAL_GOES_ON
 
 
 def _timeline(episodes: list[Episode]) -> dict[str, np.ndarray]:
@@ -83,10 +88,12 @@ def lap_times(episodes: list[Episode]) -> dict[str, Any]:
         notes.append("one lap mark only: a lap needs a mark at its start and at its end")
     laps, resets = [], []
     for a, b in itertools.pairwise(marks):
+        first, last = int(line["ep"][a]), int(line["ep"][b])
+        if any(episodes[e].end_reason not in TRIAL_GOES_ON for e in range(first, last)):
+            continue  # a trial ended in between: b starts the next one
         dt, keep = line["dt"][a:b], line["counted"][a:b]
         laps.append(float(dt[keep].sum()))
         resets.append(float(dt[~keep].sum()))
-        first, last = int(line["ep"][a]), int(line["ep"][b])
         if first != last:
             names = ", ".join(episodes[e].name for e in range(first, last))
             notes.append(

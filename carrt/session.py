@@ -107,8 +107,16 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="run at wall-clock speed through the pty (default when a person drives)",
     )
-    sim.add_argument("--episodes", type=int, help="stop after this many episodes")
-    sim.add_argument("--laps", type=int, help="end an episode after this many laps")
+    sim.add_argument(
+        "--episodes", type=int,
+        help="with --expert/--autopilot: stop after this many episodes (each ends after --laps "
+        "laps, 1 unless given, or at a collision)",
+    )  # fmt: skip
+    sim.add_argument(
+        "--laps", type=int,
+        help="with --expert/--autopilot: end an episode after this many laps (default: endless, "
+        "or 1 with --episodes)",
+    )  # fmt: skip
     sim.add_argument("--plot", help="write the run's top-down trajectory plot here (PNG)")
     sim.add_argument(
         "--random-start",
@@ -193,6 +201,10 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
     from carrt.noise import NoiseInjector
     from carrt.policy import OnnxPolicy
 
+    for flag in ("episodes", "laps"):
+        value = getattr(args, flag, None)
+        if value is not None and value < 1:
+            raise UserError(f"--{flag}: expected at least 1, got {value}")
     policy = None
     if model_path is not None:
         policy = OnnxPolicy(
@@ -202,7 +214,7 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             control_period_s=1.0 / config.loop.rate_hz,
         )
         warm = policy.warm_up()
-        print(f"model {Path(model_path).name}: {policy.provider}, warm-up {warm[-1] * 1e3:.1f} ms")
+        print(f"model {policy.path.name}: {policy.provider}, warm-up {warm[-1] * 1e3:.1f} ms")
 
     with contextlib.ExitStack() as stack:
         if getattr(args, "sim", False):

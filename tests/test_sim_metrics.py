@@ -37,18 +37,18 @@ def test_completion_ratio_is_the_safe_distance_before_the_first_collision():
     collision[80] = True  # a second one does not matter
     m = compute_metrics(t, x, y, v, progress, collision, lap, L)
     assert m.completion_ratio == pytest.approx(0.4)
-    assert m.collisions == 2 and m.interventions == 2
+    assert m.collisions == 2 and m.interventions == 0, "a crash is no takeover"
     clean = compute_metrics(t, x, y, v, progress, np.zeros(len(t), bool), lap, L)
     assert clean.completion_ratio == 1.0, "capped at one lap"
     half = compute_metrics(t[:51], x[:51], y[:51], v[:51], progress[:51], None, lap[:51], L)
     assert half.completion_ratio == pytest.approx(0.5), "no collision: as far as it got"
 
 
-def test_an_estop_counts_as_an_intervention_and_ends_the_safe_distance():
+def test_a_takeover_counts_as_an_intervention_and_ends_the_safe_distance():
     t, x, y, v, progress, lap = _straight_run(10.0)
-    estop = np.zeros(len(t), dtype=bool)
-    estop[25:28] = True  # one e-stop held for three samples
-    m = compute_metrics(t, x, y, v, progress, None, lap, L, intervention=estop)
+    takeover = np.zeros(len(t), dtype=bool)
+    takeover[25:28] = True  # one takeover flagged for three samples
+    m = compute_metrics(t, x, y, v, progress, None, lap, L, intervention=takeover)
     assert m.interventions == 1 and m.collisions == 0
     assert m.completion_ratio == pytest.approx(0.25)
 
@@ -95,7 +95,7 @@ def test_time_for_five_laps_excludes_reset_time():
     resetting = (t > 12.0) & (t <= 15.0)
     m = compute_metrics(t, x, y, v, progress, collision, lap, L, resetting=resetting)
     assert m.time_for_laps == pytest.approx(47.0)
-    assert m.interventions == 1
+    assert m.collisions == 1 and m.interventions == 0
     short = compute_metrics(t[:300], x[:300], y[:300], v[:300], progress[:300], None, lap[:300], L)
     assert short.time_for_laps is None, "fewer than five laps: no time"
     assert compute_metrics(t, x, y, v, progress, None, lap, L, n_laps=2).time_for_laps == (

@@ -55,7 +55,8 @@ def test_expert_recording_on_the_simulated_clock(tmp_path):
         assert np.abs(delta[manual & ~noisy]).max() < 1e-6
         assert np.abs(delta[manual & noisy]).max() <= 0.3 + 1e-6
         assert ep.meta["sim"]["layout"] == "easy"
-        assert steps["lap"].sum() == 1, "the pilot marks the lap at the line"
+        # the pilot marks the line at the standing start and again when the lap is done
+        assert steps["lap"].sum() == 2 and steps["lap"][0] and steps["lap"][-2:].any()
         # the camera saw the track: not a blank image
         assert ep.frames[len(ep.frames) // 2].std() > 5
 
@@ -144,3 +145,63 @@ def test_keyboard_window_drives_the_simulator(tmp_path):
     assert ep.end_reason == "estop"
     assert ep.steps["human_action"][:, 1].max() > 0.9, "the held key ramps the throttle up"
     assert ep.steps["speed_mps"].max() > 0.5, "and the simulated car moved"
+
+
+def test_expert_recording_with_only_episodes_ends_by_itself(tmp_path):
+    """`teleop --sim --expert auto --record --episodes 2` with no --laps: one lap each."""
+    out = tmp_path / "two"
+    code = CliRun(
+        ["teleop", "--sim", "--expert", "auto", "--record", "--layout", "easy",
+         "--episodes", "2", "--out", str(out)]
+    ).result(timeout_s=120)  # fmt: skip
+    assert code == 0
+    episodes = [read_episode(p) for p in list_episodes(out)]
+    assert len(episodes) == 2
+    assert [int(ep.steps["lap"].sum()) for ep in episodes] == [2, 2]  # start + one lap
+
+
+def test_one_story_the_loop_the_simulator_and_the_report_count_the_same(tmp_path):
+    """For one run, the loop's summary, the simulator's table and `carrt report` agree on
+    collisions, interventions and laps (carrt/laps.py's rule), with and without a safety
+    driver taking over. The shipped policy on a placement where it still collides."""
+    from carrt.report import build_report
+
+    seen = {"collisions": 0, "interventions": 0, "laps": 0}
+    for name, extra in (("alone", []), ("safety-driver", ["--expert-intervene"])):
+        out, summary = tmp_path / name, tmp_path / f"{name}.json"
+        code = CliRun(
+            ["drive", "--sim", "--autopilot", "--model", "demo", "--layout", "hard",
+             "--track-seed", "104", "--seed", "1", "--duration", "60", "--record",
+             "--out", str(out), "--summary-json", str(summary), *extra]
+        ).result(timeout_s=180)  # fmt: skip
+        assert code == 0
+        loop = json.loads(summary.read_text())
+        sim = json.loads((out / "sim_metrics.json").read_text())
+        (report,) = build_report([str(out)])
+        counts = {
+            "collisions": (loop["collisions"], sim["collisions"], report["collisions"]),
+            "interventions": (loop["interventions"], sim["interventions"], report["interventions"]),
+            "laps": (loop["laps"], sim["laps"], len(report["laps_s"])),
+        }
+        for what, (a, b, c) in counts.items():
+            assert a == b == c, f"{name}: {what} loop {a}, simulator {b}, report {c}"
+            seen[what] += a
+    assert all(v > 0 for v in seen.values()), f"nothing to agree on: {seen}"
+
+
+def test_expert_episodes_of_n_laps_count_n_laps_everywhere(tmp_path):
+    """--episodes 3 --laps 2: 6 laps in the simulator, pooled in the report, and 2 per episode,
+    with no lap said to span two episodes (each episode is a trial of its own)."""
+    from carrt.report import build_report
+
+    out = tmp_path / "laps"
+    code = CliRun(
+        ["teleop", "--sim", "--expert", "auto", "--record", "--layout", "easy",
+         "--episodes", "3", "--laps", "2", "--out", str(out)]
+    ).result(timeout_s=180)  # fmt: skip
+    assert code == 0
+    assert json.loads((out / "sim_metrics.json").read_text())["laps"] == 6
+    (pooled,) = build_report([str(out)])
+    assert len(pooled["laps_s"]) == 6 and pooled["notes"] == []
+    per_episode = build_report([str(out)], per_episode=True)
+    assert [len(r["laps_s"]) for r in per_episode] == [2, 2, 2]

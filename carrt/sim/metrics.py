@@ -1,9 +1,10 @@
 """The paper's evaluation numbers from a recorded trajectory, and a picture of the run.
 
 Simulation table (DIRL, Table I): average speed, top speed, completion ratio (how far round the
-track the car got before its first crash, as a share of a lap), lap time. Real-car table: with
-auto-reset after each crash, the number of interventions (collisions and e-stops) and the time
-for 5 laps not counting the time spent resetting.
+track the car got before its first crash or takeover, as a share of a lap), lap time. Real-car
+table: with auto-reset after each crash, collisions, interventions (the person took over from
+the policy: the same count as the loop's summary and `carrt report`) and the time for 5 laps not
+counting the time spent resetting.
 
 Everything works on plain arrays sampled along the run, so the same code scores the simulator,
 a recorded episode or the real car's log. Sample i covers the interval (t[i-1], t[i]].
@@ -28,7 +29,7 @@ class SimMetrics:
     lap_times: tuple[float, ...]  # s, each complete lap without a collision or intervention
     laps: int  # laps completed, clean or not
     collisions: int
-    interventions: int  # collisions + e-stops/takeovers (the real-car table's count)
+    interventions: int  # takeovers from the policy (the loop's and carrt report's count)
     time_for_laps: float | None  # s to complete n_laps laps, reset time excluded; None if fewer
     driving_time: float  # s
     distance: float  # m driven (path length, resets' jumps excluded)
@@ -104,7 +105,7 @@ def compute_metrics(
         lap_times=tuple(lap_times),
         laps=len(lap_idx),
         collisions=_rising(crash),
-        interventions=_rising(failure),
+        interventions=_rising(_flags(intervention, n)),
         time_for_laps=time_for_laps,
         driving_time=driving_time,
         distance=distance,
@@ -177,7 +178,7 @@ def format_metrics(m: SimMetrics) -> str:
             f"average speed    {m.average_speed:.2f} m/s (top {m.top_speed:.2f} m/s)",
             f"completion ratio {m.completion_ratio:.3f}",
             f"laps             {m.laps} (clean lap times, s: {laps})",
-            f"collisions       {m.collisions} (interventions {m.interventions})",
+            f"collisions       {m.collisions}, interventions {m.interventions}",
             f"time for laps    {timed} (resets excluded)",
             f"distance         {m.distance:.1f} m in {m.driving_time:.1f} s of driving",
         ]

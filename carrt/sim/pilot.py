@@ -26,6 +26,8 @@ from carrt.interfaces import JoystickEvents, JoystickState, Mode
 
 SETTLE_S = 0.5  # wait after a reset or a clear before the next press, as a person would
 INTERVENE_HOLD_S = 1.0  # a safety driver who takes over keeps the sticks at least this long
+START_LINE_M = 0.5  # a car this close to the line at arming starts a lap there (after a
+# --laps episode the person sets the car down where it stopped, just past the line)
 
 
 @dataclass
@@ -71,6 +73,8 @@ class SimPilot:
         self.intervene = intervene and expert is not None
         self._taking_over = False
         self._hold_until = 0.0
+        self._continuing = False  # the last episode ended in an e-stop: the trial goes on
+        self._start_mark = False  # press the lap button once: a standing start at the line
 
     # Joystick interface ------------------------------------------------------------
     def start(self, on_estop: Callable[[], None]) -> None:
@@ -96,7 +100,8 @@ class SimPilot:
             elif self.intervene:
                 sticks = self._safety_driver(mode, now, state)
         events = self._decide(mode, now, laps)
-        if new_lap:
+        if new_lap or (self._start_mark and mode in (Mode.MANUAL, Mode.AUTO)):
+            self._start_mark = False
             events = replace(events, lap=True)
         return JoystickState(
             connected=True,
@@ -152,6 +157,13 @@ class SimPilot:
             self._placed = False
         if new in (Mode.MANUAL, Mode.AUTO) and old == Mode.DISARMED:
             self._laps_at_arm = self._last_laps
+            # carrt report's convention, as a person follows it: the lap button at every
+            # crossing of the line, the start of a trial included (N marks make N-1 laps).
+            # A trial that goes on after an e-stop and a reset has no new start.
+            self._start_mark = not self._continuing and self._at_line()
+            self._continuing = False
+        if new == Mode.DISARMED and old in (Mode.MANUAL, Mode.AUTO):
+            self._continuing = False  # a deliberate end: the next arm starts a new trial
         if new == Mode.DISARMED and self._pick_up:
             # The episode ended at the line: the person lifts the car off and sets it down at
             # rest. Braking to a stop inside the episode would teach a policy to stop there.
@@ -161,10 +173,17 @@ class SimPilot:
         if new in (Mode.ESTOP, Mode.DISARMED):
             self._taking_over = False
         if new == Mode.ESTOP:
+            self._continuing = True
             self.log.episodes += 1
             if self.plant.world.collided:
                 self.log.collisions += 1
             self.plant.reset()  # carry the car back onto the track
+
+    def _at_line(self) -> bool:
+        """The car stands on the start line (within a body length), where laps are counted."""
+        world = self.plant.world
+        s, length = world.s, world.track.length
+        return min(s, length - s) < START_LINE_M
 
     def _decide(self, mode: Mode, now: float, laps: int) -> JoystickEvents:
         if self.max_episodes is not None and self.log.episodes >= self.max_episodes:
