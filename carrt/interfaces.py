@@ -164,3 +164,22 @@ class EpisodeSink(Protocol):
 
     @property
     def dropped(self) -> int: ...
+
+
+@dataclass(frozen=True)
+class LiveStatus:
+    """What the loop did on its last tick, for whoever watches (the simulator's keyboard window).
+
+    The loop replaces it whole once per tick, so a reader on another thread always sees one
+    tick's values together, and never makes the loop wait.
+    """
+
+    mode: Mode = Mode.DISARMED
+    why: str = ""  # why the car is held at neutral, or what latched the e-stop
+    speed_mps: float = 0.0
+    human: tuple[float, float] = (0.0, 0.0)  # (steering, throttle) from the sticks or keys
+    executed: tuple[float, float] = (0.0, 0.0)  # what was sent to the board
+    recording: bool = False
+    episodes: int = 0
+    collisions: int = 0
+    laps: int = 0

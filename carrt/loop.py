@@ -27,7 +27,16 @@ import numpy as np
 from carrt.arbitration import Arbiter, ArbiterInputs, Decision
 from carrt.camera import preprocess
 from carrt.config import CarConfig
-from carrt.interfaces import Camera, Clock, EpisodeSink, Joystick, Mode, Policy, Step
+from carrt.interfaces import (
+    Camera,
+    Clock,
+    EpisodeSink,
+    Joystick,
+    LiveStatus,
+    Mode,
+    Policy,
+    Step,
+)
 from carrt.laps import LapCounter
 from carrt.noise import NoiseInjector
 from carrt.plan import PlanBuffer
@@ -152,6 +161,7 @@ class ControlLoop:
         self._last_message = ""
         self._collision_ended = False
         self._lap_counter = LapCounter()
+        self.live = LiveStatus()  # replaced whole every tick: safe to read from other threads
         self._was_driving = False
         self.log = log
 
@@ -266,6 +276,17 @@ class ControlLoop:
 
         for name, seconds in sections.items():
             self._timings[name].append(seconds)
+        self.live = LiveStatus(
+            mode=decision.mode,
+            why=self.arbiter.estop_reason if decision.mode == Mode.ESTOP else decision.reason,
+            speed_mps=speed,
+            human=(joystick.steering, joystick.throttle),
+            executed=executed,
+            recording=self._recording,
+            episodes=self.summary.episodes,
+            collisions=self.summary.collisions,
+            laps=self.summary.laps,
+        )
         mode_name = decision.mode.name
         self.summary.modes_s[mode_name] = self.summary.modes_s.get(mode_name, 0.0) + self.period
         return not joystick.events.quit

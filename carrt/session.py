@@ -165,6 +165,7 @@ class Rig:
     describe: str
     collisions: Any = None
     follows_mode: list = field(default_factory=list)  # things that need the loop's mode
+    watches_loop: list = field(default_factory=list)  # shown the loop's LiveStatus (a window)
     finish: Any = None  # called with the loop summary (the simulator prints its metrics)
 
 
@@ -266,6 +267,8 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
         )
         for follower in rig.follows_mode:  # the sim's pilot and trajectory tracker
             follower.mode_source = lambda: loop.arbiter.mode
+        for watcher in rig.watches_loop:  # the simulator's keyboard window
+            watcher.status_source = lambda: loop.live
         rig.joystick.start(on_estop=lambda: loop.estop("joystick"))
         stack.callback(rig.joystick.stop)
         _stop_on_signals(loop, stack)

@@ -69,6 +69,10 @@ def open_sim_rig(
     world = SimWorld(layout=args.layout, seed=args.track_seed)
     plant = SimPlant(world)
     scripted = getattr(args, "expert", None) == "auto" or getattr(args, "autopilot", False)
+    if not scripted and not getattr(args, "pad", False):
+        from carrt.sim.keyboard import require_display
+
+        require_display()  # before anything starts: a window nobody can see drives nothing
     realtime = args.realtime or not scripted
     if realtime:
         from firmware_bridge.virtual import VirtualBoard
@@ -134,6 +138,7 @@ def open_sim_rig(
         describe=f"simulator, layout {args.layout} seed {args.track_seed}, {where}",
         collisions=tracker.tick,
         follows_mode=[x for x in (pilot, tracker) if x is not None],
+        watches_loop=[joystick] if hasattr(joystick, "status_source") else [],
         finish=lambda summary: _finish(args, world, tracker, summary),
     )
 

@@ -1,0 +1,98 @@
+"""The keyboard window on a real X server (Xvfb), driven by real key events (xdotool's XTEST):
+drive, crash, clear, re-arm, drive on. `.ci/run` installs xvfb and xdotool."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from carrt.episodes.reader import list_episodes, read_episode
+from carrt.interfaces import Mode
+
+NEEDED = ("Xvfb", "xdotool")
+
+
+@pytest.fixture
+def x_display(tmp_path):
+    missing = [tool for tool in NEEDED if shutil.which(tool) is None]
+    assert not missing, f"install {' '.join(missing)} (apt-get install xvfb xdotool; .ci/run does)"
+    number = 90 + os.getpid() % 500
+    server = subprocess.Popen(
+        ["Xvfb", f":{number}", "-screen", "0", "1024x768x24", "-nolisten", "tcp"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    env = {k: v for k, v in os.environ.items() if k not in ("SDL_VIDEODRIVER", "WAYLAND_DISPLAY")}
+    env["DISPLAY"] = f":{number}"
+    deadline = time.monotonic() + 10
+    while subprocess.run(["xdotool", "getmouselocation"], env=env, capture_output=True).returncode:
+        assert time.monotonic() < deadline and server.poll() is None, "Xvfb did not start"
+        time.sleep(0.1)
+    yield env
+    server.terminate()
+    server.wait(timeout=10)
+
+
+def test_keyboard_session_drive_crash_clear_rearm_drive_on(tmp_path, x_display):
+    env, out = x_display, tmp_path / "keys"
+    shot = tmp_path / "window.png"
+    carrt = subprocess.Popen(
+        [sys.executable, "-m", "carrt", "teleop", "--sim", "--layout", "easy", "--record",
+         "--out", str(out), "--duration", "40", "--set", "noise.fraction=0.0"],
+        env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+
+    def xdo(*args: str) -> str:
+        done = subprocess.run(["xdotool", *args], env=env, capture_output=True, text=True)
+        return done.stdout.strip()
+
+    deadline = time.monotonic() + 20
+    while not (window := xdo("search", "--pid", str(carrt.pid))):
+        assert carrt.poll() is None and time.monotonic() < deadline, carrt.stdout.read()
+        time.sleep(0.2)
+    window = window.split()[0]
+    xdo("windowfocus", "--sync", window)
+    time.sleep(1.0)
+
+    def press(key: str, settle: float = 0.6) -> None:
+        xdo("key", key)
+        time.sleep(settle)
+
+    def hold(key: str, seconds: float) -> None:
+        xdo("keydown", key)
+        time.sleep(seconds)
+        xdo("keyup", key)
+
+    press("Return")  # arm
+    hold("Up", 6.0)  # straight on at full throttle: into the fence at the first bend
+    time.sleep(1.0)
+    press("c")  # clear the collision's e-stop (the car was lifted back onto the track)
+    press("Return")  # arm again
+    hold("Up", 1.5)  # and drive on
+    press("F12")  # screenshot of the window
+    press("Escape")
+    text, _ = carrt.communicate(timeout=30)
+    assert carrt.returncode == 0, text
+
+    episodes = [read_episode(p) for p in list_episodes(out)]
+    assert len(episodes) >= 2, text
+    first, last = episodes[0], episodes[-1]
+    assert first.end_reason == "collision", text
+    assert "stall" not in text, "the board must not fail-safe on a car stuck in the fence"
+    after = last.steps
+    assert (after["mode"] == Mode.MANUAL).any()
+    assert after["speed_mps"].max() > 0.5, "the car drove on after clear and re-arm"
+    assert after["human_action"][:, 1].max() > 0.9
+    png = tmp_path / "carrt-window.png"
+    assert png.stat().st_size > 10_000, "F12 saved the window"
+    shutil.copyfile(png, shot)
+    import pygame
+
+    image = pygame.surfarray.array3d(pygame.image.load(str(png)))
+    assert image.shape[:2] == (96 * 4 + 380, 96 * 4 + 190)
+    assert np.std(image) > 20, "the window shows something"
