@@ -69,10 +69,11 @@ def simulator_part(out: Path, seconds: float, model: Path = DEMO_POLICY) -> None
     )  # fmt: skip
     if code != 0:
         raise SystemExit(code)
-    longest = max(iter_episodes(episodes), key=lambda ep: ep.n)
-    carrt(["episodes", "video", str(longest.path), "-o", str(out / "run.mp4")])
+    recorded = [str(ep.path) for ep in iter_episodes(episodes)]
+    carrt(["episodes", "video", *recorded, "-o", str(out / "run.mp4")])  # every episode, in order
     carrt(["report", str(episodes)])
-    _say(f"\nwritten: {episodes}/, {out / 'run.mp4'} ({longest.name}), {out / 'trajectory.png'}\n")
+    _say(f"\nwritten: {episodes}/, {out / 'run.mp4'} (all {len(recorded)} episodes, H.264), "
+         f"{out / 'trajectory.png'}\n")  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -18,12 +18,14 @@ from carrt.episodes import (
     collision_labels,
     list_episodes,
     read_episode,
+    video,
 )
 from carrt.episodes import cli as episodes_cli
 from carrt.episodes import format as fmt
 from carrt.episodes import writer as writer_mod
-from carrt.episodes.inspect import render_contact_sheet, render_video
+from carrt.episodes.inspect import render_contact_sheet
 from carrt.episodes.summary import summarize
+from carrt.episodes.video import render_video
 from carrt.errors import UserError
 from carrt.interfaces import HORIZON, EpisodeSink, Mode
 
@@ -138,7 +140,7 @@ def test_zero_step_episode(tmp_path):
     assert ep.duration_s == 0.0 and len(ep.collision) == 0
     assert summarize(ep)["frames"] == 0
     with pytest.raises(UserError, match="no frames"):
-        render_video(ep, tmp_path / "x.mp4")
+        render_video([ep], tmp_path / "x.mp4")
 
 
 def test_crashed_run_without_end_metadata_is_readable(tmp_path):
@@ -350,9 +352,10 @@ def test_summary_counts(tmp_path):
 
 
 @pytest.mark.parametrize("suffix", [".mp4", ".avi"])
-def test_video_decodes(tmp_path, suffix):
-    ep = read_episode(write_episode(tmp_path, mixed_steps(12)))
-    out = render_video(ep, tmp_path / f"ep{suffix}", fps=10, scale=2)
+def test_video_holds_every_episode_and_decodes(tmp_path, suffix):
+    first = read_episode(write_episode(tmp_path / "a", mixed_steps(12)))
+    second = read_episode(write_episode(tmp_path / "b", mixed_steps(5)))
+    out = render_video([first, second], tmp_path / f"ep{suffix}", fps=10, scale=2)
     cap = cv2.VideoCapture(str(out))
     frames = []
     while True:
@@ -361,7 +364,40 @@ def test_video_decodes(tmp_path, suffix):
             break
         frames.append(frame)
     cap.release()
-    assert len(frames) == 12 and frames[0].shape == (192, 192, 3)
+    assert len(frames) == 17, "both episodes, every frame"
+    assert frames[0].shape == (192, 192 + video.PANEL_W, 3)
+
+
+def test_mp4_is_h264_a_browser_plays(tmp_path):
+    """H.264 High, yuv420p, the moov atom before the media (playback starts while loading)."""
+    import av
+
+    ep = read_episode(write_episode(tmp_path, mixed_steps(12)))
+    out = render_video([ep], tmp_path / "ep.mp4")
+    with av.open(str(out)) as container:
+        (stream,) = container.streams.video
+        assert stream.codec_context.name == "h264"
+        assert stream.codec_context.pix_fmt == "yuv420p"
+        assert stream.codec_context.profile == "High"
+        assert (stream.width, stream.height) == (384 + video.PANEL_W, 384)
+        assert sum(1 for _ in container.decode(stream)) == 12
+    head = out.read_bytes()[:4096]
+    assert head.find(b"moov") != -1 and head.find(b"moov") < out.read_bytes().find(b"mdat")
+
+
+def test_the_overlay_draws_the_actions_and_the_plan(tmp_path):
+    ep = read_episode(write_episode(tmp_path, mixed_steps(12)))
+    panel = video.compose(ep, 3)[:, 384:]
+    other = video.compose(ep, 7)[:, 384:]
+    assert panel.shape == (384, video.PANEL_W, 3)
+    assert (panel != other).any(), "the panel follows the step"
+    assert panel[250:, :].std() > 5, "the plan's lines are drawn"
+
+
+def test_a_wrong_video_suffix_is_refused(tmp_path):
+    ep = read_episode(write_episode(tmp_path, mixed_steps(3)))
+    with pytest.raises(UserError, match=r"\.mp4 \(H\.264\)"):
+        render_video([ep], tmp_path / "ep.mov")
 
 
 def test_contact_sheet_decodes(tmp_path):

@@ -6,6 +6,7 @@ import argparse
 import json
 
 from carrt.episodes.reader import list_episodes, read_episode
+from carrt.errors import UserError
 
 # carrt.episodes.inspect imports OpenCV, which every `carrt` command would pay for at start-up
 # if it were imported here: the CLI builds all parsers on every run.
@@ -29,10 +30,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     show.set_defaults(func=run)
 
-    video = sub.add_parser("video", help="render an episode to a video or a contact sheet")
-    video.add_argument("episode", metavar="EP")
+    video = sub.add_parser(
+        "video",
+        help="render episodes to one video (H.264, plays in a browser) or a contact sheet",
+        description="Render episodes, in order, to one video with the camera, mode, speed, the "
+        "person's, the policy's and the executed actions and the plan's mu over H drawn beside.",
+        epilog="example: carrt episodes video episodes/20261123-* -o run.mp4",
+    )
+    video.add_argument("episode", metavar="EP", nargs="+", help="episode directories, in order")
     out = video.add_mutually_exclusive_group(required=True)
-    out.add_argument("-o", "--output", metavar="OUT", help="video file: .mp4 (mp4v) or .avi (MJPG)")
+    out.add_argument(
+        "-o", "--output", metavar="OUT", help="video file: .mp4 (H.264) or .avi (MJPG)"
+    )
     out.add_argument("--sheet", metavar="PNG", help="write a contact sheet instead")
     video.add_argument("--fps", type=float, default=10.0, help="video frame rate (default 10)")
     video.add_argument("--scale", type=int, default=4, help="video upscaling (default 4)")
@@ -80,12 +89,16 @@ def run_show(args: argparse.Namespace) -> int:
 
 
 def run_video(args: argparse.Namespace) -> int:
-    from carrt.episodes.inspect import render_contact_sheet, render_video
+    from carrt.episodes.inspect import render_contact_sheet
+    from carrt.episodes.video import render_video
 
-    ep = read_episode(args.episode)
+    episodes = [read_episode(path) for path in args.episode]
     if args.sheet:
-        out = render_contact_sheet(ep, args.sheet, every=args.every)
+        if len(episodes) != 1:
+            raise UserError("--sheet takes one episode")
+        out = render_contact_sheet(episodes[0], args.sheet, every=args.every)
     else:
-        out = render_video(ep, args.output, fps=args.fps, scale=args.scale)
-    print(f"wrote {out} ({ep.n} frames)")
+        out = render_video(episodes, args.output, fps=args.fps, scale=args.scale)
+    frames = sum(ep.n for ep in episodes)
+    print(f"wrote {out} ({len(episodes)} episode(s), {frames} frames)")
     return 0
