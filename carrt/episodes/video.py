@@ -150,6 +150,7 @@ def render_video(
     if not (np.isfinite(fps) and fps > 0) or scale < 1:
         raise UserError(f"--fps must be > 0 and --scale >= 1, got {fps} and {scale}")
     out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
     suffix = out.suffix.lower()
     if suffix == ".mp4":
         write_h264(frames_of(episodes, scale), out, fps)
