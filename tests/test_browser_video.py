@@ -26,7 +26,7 @@ def test_an_episode_video_plays_in_chromium(tmp_path):
         while (state := browser.execute_script(STATE))[0] < 2 and not state[4]:
             assert time.monotonic() < deadline, f"the video never loaded: {state}"
             time.sleep(0.1)
-        ready, width, height, duration, error, _, _ = state
+        _, width, height, duration, error, _, _ = state
         assert error is None, f"Chromium could not decode it (MediaError {error})"
         assert (width, height) == (384 + PANEL_W, 384)
         assert abs(duration - 6.0) < 0.2, "60 frames at 10 fps: both episodes"
