@@ -10,6 +10,7 @@ must not silently leave the car at full throttle.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import sys
 from dataclasses import dataclass, field
@@ -211,14 +212,17 @@ def from_dict(data: dict[str, Any]) -> CarConfig:
     config = CarConfig()
     for section, values in data.items():
         if section not in _SECTION_CLASSES:
-            raise UserError(f"config: unknown section [{section}] (known: {', '.join(SECTIONS)})")
+            raise UserError(
+                f"config: unknown section [{section}]{_did_you_mean(section, SECTIONS)} "
+                f"(known: {', '.join(SECTIONS)})"
+            )
         if not isinstance(values, dict):
             raise UserError(f"config {section}: expected a [{section}] table")
         target = getattr(config, section)
         specs = {f.name: f for f in dataclasses.fields(target)}
         for key, value in values.items():
             if key not in specs:
-                raise UserError(f"config {section}.{key}: unknown key")
+                raise UserError(f"config {section}.{key}: unknown key{_did_you_mean(key, specs)}")
             setattr(target, key, _check_value(f"{section}.{key}", specs[key], value))
     _check_consistency(config)
     return config
@@ -268,6 +272,11 @@ def load(path: str | Path | None, overrides: list[str] | None = None) -> CarConf
             raise UserError(f"config {section}: expected a [{section}] table")
         data[section][name] = _parse_override(raw.strip())
     return from_dict(data)
+
+
+def _did_you_mean(word: str, known: Any) -> str:
+    close = difflib.get_close_matches(word, list(known), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]}?)" if close else ""
 
 
 def _parse_override(raw: str) -> Any:

@@ -21,8 +21,8 @@ def test_defaults_are_valid_and_render_round_trips(tmp_path):
 @pytest.mark.parametrize(
     ("text", "message"),
     [
-        ("[pwm]\nmax_forwrd = 0.3\n", "pwm.max_forwrd: unknown key"),
-        ("[pwn]\nmax_forward = 0.3\n", "unknown section [pwn]"),
+        ("[pwm]\nmax_forwrd = 0.3\n", "pwm.max_forwrd: unknown key (did you mean max_forward?)"),
+        ("[pwn]\nmax_forward = 0.3\n", "unknown section [pwn] (did you mean pwm?)"),
         ("[pwm]\nmax_forward = 3.0\n", "pwm.max_forward: 3.0 is above the maximum 1.0"),
         ("[pwm]\nsteer_left_us = 500\n", "pwm.steer_left_us: 500 is below the minimum 800"),
         ('[serial]\nbaud = "fast"\n', "serial.baud: expected int"),

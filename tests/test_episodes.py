@@ -424,7 +424,9 @@ def test_cli_ls_show_video(tmp_path, capsys):
     assert path.name in out and "stopped" in out and "1 episodes" in out
     assert _cli(["episodes", "show", str(path)]) == 0
     out = capsys.readouterr().out
-    assert "interventions" in out and '"car_config"' in out
+    assert "interventions" in out and '"car_config"' not in out and len(out.splitlines()) < 30
+    assert _cli(["episodes", "show", str(path), "--meta"]) == 0
+    assert '"car_config"' in capsys.readouterr().out
     assert _cli(["episodes", "show", str(path), "--json", "--verify"]) == 0
     assert json.loads(capsys.readouterr().out)["frames"] == 10
     assert _cli(["episodes", "video", str(path), "--sheet", str(tmp_path / "s.png")]) == 0

@@ -257,3 +257,25 @@ def test_augmentation_is_seeded_and_changes_colours_only():
     grey = torch.full((2, 8, 8, 3), 100, dtype=torch.uint8)
     g = augment_images(grey, torch.Generator().manual_seed(3), brightness=0, contrast=0)
     assert (g.int() - 100).abs().max() <= 1  # hue and saturation leave grey alone
+
+
+def test_training_stops_before_a_record_whose_crc_fails(tmp_path, caplog):
+    """Issue 15 (8): the car's reader trusts the fsynced region; training checks every CRC, so
+    a byte flipped inside it never reaches a batch."""
+    import shutil
+
+    from carrt.episodes import format as fmt
+    from carrt.interfaces import Mode
+
+    ep = _episode(tmp_path / "eps" / "a", 7, [Mode.MANUAL] * 12)
+    copy = tmp_path / "copy"
+    shutil.copytree(ep.path.parent, copy)
+    (damaged,) = [p for p in copy.iterdir() if p.is_dir()]
+    frames = bytearray((damaged / fmt.FRAMES).read_bytes())
+    frames[5 * fmt.FRAME_BYTES + 100] ^= 0x40  # one bit of frame 5
+    (damaged / fmt.FRAMES).write_bytes(bytes(frames))
+    assert load_episodes(ep.path.parent)[0].n == 12
+    with caplog.at_level("WARNING", logger="training.data"):
+        (loaded,) = load_episodes(copy)
+    assert loaded.n == 5, "cut before the damaged record"
+    assert "fails its CRC" in caplog.text and damaged.name in caplog.text

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -25,6 +26,8 @@ from torch.utils.data import Dataset, default_collate
 
 from carrt.episodes.reader import Episode, list_episodes, read_episode
 from carrt.interfaces import IMAGE_SHAPE, Mode
+
+log = logging.getLogger(__name__)
 
 IMAGE_STD_MIN = 1e-2  # in 0..1 pixel units: a constant channel must not divide by ~0
 SPEED_STD_MIN = 0.1  # m/s: data recorded standing still must not blow the speed input up
@@ -62,9 +65,23 @@ class Normalisation:
 
 def load_episodes(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> list[Episode]:
     """Every episode under the given episode directories or directories of them, by name.
-    Episodes with no steps (a run that died before its first frame) are left out."""
-    episodes = [read_episode(p) for p in list_episodes(paths)]
-    return [ep for ep in episodes if ep.n > 0]
+    Episodes with no steps (a run that died before its first frame) are left out.
+
+    Every record's CRC is checked, not only the unsynced tail the car's reader checks: a byte
+    flipped on disk or in a copy would otherwise reach training unnoticed. An episode is cut
+    before its first damaged record, and the cut is logged."""
+    episodes = []
+    for path in list_episodes(paths):
+        ep = read_episode(path, verify_all=True)
+        recorded = int((ep.meta.get("counts") or {}).get("steps", ep.n))
+        if ep.n < recorded:
+            log.warning(
+                "%s: record %d fails its CRC: training uses the %d records before it of %d",
+                ep.name, ep.n, ep.n, recorded,
+            )  # fmt: skip
+        if ep.n > 0:
+            episodes.append(ep)
+    return episodes
 
 
 def _rank_key(seed: int, name: str) -> bytes:

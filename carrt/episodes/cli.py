@@ -26,6 +26,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     show.add_argument("episode", metavar="EP")
     show.add_argument("--json", action="store_true", help="print the summary as JSON")
     show.add_argument(
+        "--meta", action="store_true", help="also print the metadata (car config, model, ...)"
+    )
+    show.add_argument(
         "--verify", action="store_true", help="check every record's CRC, not only the unsynced tail"
     )
     show.set_defaults(func=run)
@@ -82,9 +85,12 @@ def run_show(args: argparse.Namespace) -> int:
         print(json.dumps(summary, indent=2))
         return 0
     print(format_summary(summary))
-    meta = {k: v for k, v in ep.meta.items() if k != "format"}
-    print("metadata:")
-    print(json.dumps(meta, indent=2, default=str))
+    if args.meta:
+        meta = {k: v for k, v in ep.meta.items() if k != "format"}
+        print("metadata:")
+        print(json.dumps(meta, indent=2, default=str))
+    else:
+        print("(metadata: --meta)")
     return 0
 
 
