@@ -181,7 +181,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--config", required=True, help="car TOML to update")
     parser.add_argument("--port", help="serial port (overrides serial.port)")
-    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+        help="override a key of the config being calibrated (repeatable)",
+    )  # fmt: skip
     parser.set_defaults(func=run)
 
 

@@ -167,8 +167,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "check", help="self-test a board: handshake, latency, telemetry, encoder, errors"
     )
     parser.add_argument("--port", required=True, help="serial port, e.g. /dev/serial/by-id/...")
-    parser.add_argument("--baud", type=int, default=DEFAULT_BAUD)
-    parser.add_argument("--pings", type=int, default=20)
+    parser.add_argument(
+        "--baud", type=int, default=DEFAULT_BAUD, help="serial speed (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--pings", type=int, default=20, help="round trips to time (default: %(default)s)"
+    )
     parser.add_argument("--duration", type=float, default=1.0, help="telemetry window, seconds")
     parser.add_argument(
         "--spin-wheels",

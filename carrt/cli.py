@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import os
 import signal
 import sys
@@ -36,19 +37,86 @@ COMMANDS = (
 )
 
 
+# One example per sub-command, shown under its --help (a test checks every one has one).
+EXAMPLES = {
+    "check": "carrt check --port /dev/ttyACM0",
+    "config": "carrt config init -o car.toml && carrt config check car.toml",
+    "config init": "carrt config init -o car.toml",
+    "config check": "carrt config check car.toml --set pwm.max_forward=0.4",
+    "calibrate": "carrt calibrate --config car.toml --port /dev/ttyACM0",
+    "teleop": "carrt teleop --config car.toml --record      # or: carrt teleop --sim",
+    "drive": "carrt drive --config car.toml --model policy.onnx --record\n"
+    "  carrt drive --sim --autopilot --model demo --layout hard --track-seed 101",
+    "episodes": "carrt episodes ls episodes/",
+    "episodes ls": "carrt episodes ls episodes/",
+    "episodes show": "carrt episodes show episodes/20261123-101500-000 --meta",
+    "episodes video": "carrt episodes video episodes/20261123-* -o run.mp4",
+    "report": "carrt report episodes/ --per-episode",
+    "model": "carrt model info policy.onnx",
+    "model info": "carrt model info demo --json",
+    "eval": "carrt eval --model demo --layout hard --tracks 100-104 --seconds 60 --seeds 0,1",
+}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="carrt", description="Vision-based autonomous RC car racing (DIRL), on the car."
+        prog="carrt",
+        description="Vision-based autonomous RC car racing (DIRL), on the car.",
+        epilog="example: carrt teleop --sim   (then: carrt COMMAND --help)",
     )
     parser.add_argument("--version", action="version", version=f"carrt {__version__}")
+    loud = parser.add_mutually_exclusive_group()
+    loud.add_argument("-v", "--verbose", action="store_true", help="also log debug messages")
+    loud.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module_name, function in COMMANDS:
         getattr(importlib.import_module(module_name), function)(subparsers)
+    _describe(parser, [])
     return parser
+
+
+def _describe(parser: argparse.ArgumentParser, path: list[str]) -> None:
+    """Give every sub-command its one-line help as description and its example as epilog."""
+    for action in parser._actions:
+        if not isinstance(action, argparse._SubParsersAction):
+            continue
+        helps = {a.dest: a.help for a in action._choices_actions}
+        for name, sub in action.choices.items():
+            sub.formatter_class = argparse.RawDescriptionHelpFormatter
+            if not sub.description and helps.get(name):
+                sub.description = helps[name][:1].upper() + helps[name][1:] + "."
+            example = EXAMPLES.get(" ".join([*path, name]))
+            if example and not sub.epilog:
+                sub.epilog = f"example:\n  {example}"
+            _describe(sub, [*path, name])
+
+
+class _ConsoleHandler(logging.Handler):
+    """Info to the stdout of the moment (tests and `carrt eval` redirect it), warnings and
+    errors to stderr with their level in front."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        text = record.getMessage()
+        if record.levelno >= logging.WARNING:
+            print(f"{record.levelname.lower()}: {text}", file=sys.stderr)
+        else:
+            print(text, file=sys.stdout)
+
+
+def _setup_logging(args: argparse.Namespace) -> None:
+    """The `carrt` loggers: info by default, debug with -v, warnings and errors only with -q."""
+    logger = logging.getLogger("carrt")
+    if not any(isinstance(h, _ConsoleHandler) for h in logger.handlers):
+        logger.addHandler(_ConsoleHandler())
+        logger.propagate = False
+    logger.setLevel(
+        logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _setup_logging(args)
     try:
         return args.func(args)
     except (UserError, LinkError, ContractError, FirmwareBuildError) as exc:

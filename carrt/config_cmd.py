@@ -13,12 +13,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("config", help="create or check a car configuration file")
     sub = parser.add_subparsers(dest="config_command", required=True, metavar="ACTION")
     init = sub.add_parser("init", help="write a commented default configuration")
-    init.add_argument("-o", "--output", default="car.toml")
+    init.add_argument(
+        "-o", "--output", default="car.toml", help="file to write (default: %(default)s)"
+    )
     init.add_argument("--force", action="store_true", help="overwrite an existing file")
     init.set_defaults(func=run_init)
     check = sub.add_parser("check", help="validate a configuration file")
-    check.add_argument("path")
-    check.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    check.add_argument("path", help="the car TOML to check")
+    check.add_argument(
+        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+        help="override a key, as drive and teleop would (repeatable)",
+    )  # fmt: skip
     check.set_defaults(func=run_check)
 
 

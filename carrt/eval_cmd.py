@@ -28,7 +28,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     who = parser.add_mutually_exclusive_group(required=True)
     who.add_argument("--model", help="policy .onnx to evaluate, or `demo` for the shipped one")
     who.add_argument("--expert", action="store_true", help="evaluate the scripted expert")
-    parser.add_argument("--layout", default="hard", choices=LAYOUTS)
+    parser.add_argument(
+        "--layout", default="hard", choices=LAYOUTS, help="obstacles (default: %(default)s)"
+    )
     parser.add_argument(
         "--tracks", default="100-104", help="placement seeds: ranges and lists, e.g. 100-104,120"
     )

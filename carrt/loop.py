@@ -14,6 +14,7 @@ disk: steps go to the episode writer's bounded queue.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -46,6 +47,9 @@ from firmware_bridge.link import BoardLink
 
 SECTIONS = ("capture", "preprocess", "inference", "arbitration", "actuation", "logging")
 NAN2 = (math.nan, math.nan)
+
+
+LOG = logging.getLogger(__name__)  # mode changes and refusals: what the person is told
 
 
 @dataclass
@@ -132,7 +136,7 @@ class ControlLoop:
         record: bool,
         episode_metadata: dict[str, Any] | None = None,
         max_steps: int | None = None,
-        log: Callable[[str], None] = print,
+        log: Callable[[str], None] = LOG.info,
     ) -> None:
         self.parts = parts
         self.config = config

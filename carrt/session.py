@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import logging
 import secrets
 import signal
 import threading
@@ -28,6 +29,9 @@ from carrt.errors import UserError
 from firmware_bridge.link import BoardLink, LinkError
 
 FIRST_FRAME_TIMEOUT_S = 3.0
+
+
+LOG = logging.getLogger(__name__)
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -215,7 +219,7 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             control_period_s=1.0 / config.loop.rate_hz,
         )
         warm = policy.warm_up()
-        print(f"model {policy.path.name}: {policy.provider}, warm-up {warm[-1] * 1e3:.1f} ms")
+        LOG.info(f"model {policy.path.name}: {policy.provider}, warm-up {warm[-1] * 1e3:.1f} ms")
 
     with contextlib.ExitStack() as stack:
         if getattr(args, "sim", False):
@@ -271,8 +275,8 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             watcher.status_source = lambda: loop.live
         rig.joystick.start(on_estop=lambda: loop.estop("joystick"))
         stack.callback(rig.joystick.stop)
-        _stop_on_signals(loop, stack)
-        print(f"carrt {'drive' if policy else 'teleop'}: {rig.describe}")
+        stopped_by = _stop_on_signals(loop, stack)
+        LOG.info(f"carrt {'drive' if policy else 'teleop'}: {rig.describe}")
         summary = loop.run()
     print(summary.render())
     if rig.finish is not None:
@@ -281,7 +285,9 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
         Path(args.summary_json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
     if link.error is not None:
         raise link.error
-    return 0
+    # Ctrl-C ends a drive cleanly (summary, episodes closed, car stopped), and still exits as
+    # every other command stopped by a signal does: 128 + the signal (130 for Ctrl-C).
+    return 128 + stopped_by[0] if stopped_by else 0
 
 
 def _wait_first_frame(camera: Any, source: str) -> None:
@@ -316,15 +322,23 @@ def _episode_metadata(config, policy, link: BoardLink, mode: str) -> dict[str, A
     }
 
 
-def _stop_on_signals(loop: Any, stack: contextlib.ExitStack) -> None:
+def _stop_on_signals(loop: Any, stack: contextlib.ExitStack) -> list[int]:
     """SIGINT/SIGTERM end the run through the normal shutdown (only from the main thread);
     the previous handlers come back when the run ends, so a caller that runs several sessions
-    in one process (carrt eval, the tests) is never left with a handler of a finished loop."""
+    in one process (carrt eval, the tests) is never left with a handler of a finished loop.
+    Returns a list that will hold the signal that stopped the run, if one did."""
+    caught: list[int] = []
     if threading.current_thread() is not threading.main_thread():
-        return
+        return caught
+
+    def stop(signum: int, _frame: Any) -> None:
+        caught.append(int(signum))
+        loop.stop()
+
     for sig in (signal.SIGINT, signal.SIGTERM):
         stack.callback(signal.signal, sig, signal.getsignal(sig))
-        signal.signal(sig, lambda *_: loop.stop())
+        signal.signal(sig, stop)
+    return caught
 
 
 __all__ = ["LinkError", "add_parsers"]

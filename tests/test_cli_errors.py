@@ -183,3 +183,51 @@ def test_a_reader_that_stops_early_gets_no_traceback(tmp_path, command):
     code = proc.wait(timeout=60)
     assert "Traceback" not in err and "BrokenPipeError" not in err, err
     assert code == 141, (code, err)
+
+
+def test_every_subcommand_has_a_description_an_example_and_helped_options():
+    import argparse
+
+    from carrt.cli import build_parser
+
+    def walk(parser, path):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    yield " ".join([*path, name]), sub
+                    yield from walk(sub, [*path, name])
+
+    seen = 0
+    for name, sub in walk(build_parser(), []):
+        seen += 1
+        assert sub.description, f"carrt {name}: no description"
+        assert sub.epilog and "carrt " in sub.epilog, f"carrt {name}: no example"
+        for action in sub._actions:
+            if isinstance(action, (argparse._HelpAction, argparse._SubParsersAction)):
+                continue
+            assert action.help, f"carrt {name} {action.option_strings or action.dest}: no help"
+    assert seen >= 15
+
+
+def test_quiet_keeps_the_results_and_drops_the_chatter():
+    loud = carrt("drive", "--sim", "--autopilot", "--model", "demo", "--duration", "2")
+    quiet = carrt("-q", "drive", "--sim", "--autopilot", "--model", "demo", "--duration", "2")
+    assert loud.returncode == quiet.returncode == 0, quiet.stderr
+    assert "mode MANUAL" in loud.stdout and "mode MANUAL" not in quiet.stdout
+    assert "completion ratio" in quiet.stdout, "the run's results still print"
+
+
+def test_ctrl_c_ends_a_drive_cleanly_with_exit_130(tmp_path):
+    """Like every other command stopped by Ctrl-C (iterate.py included): 130, and the run still
+    ends through its normal shutdown (summary printed, episodes closed)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "carrt", "drive", "--sim", "--autopilot", "--model", "demo",
+         "--record", "--out", str(tmp_path / "eps"), "--duration", "3000"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
+    )  # fmt: skip
+    time.sleep(4.0)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "completion ratio" in out
+    assert all(read_episode(p).end_reason != "crashed" for p in list_episodes(tmp_path / "eps"))

@@ -23,7 +23,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     ls.set_defaults(func=run)
 
     show = sub.add_parser("show", help="an episode's summary and metadata")
-    show.add_argument("episode", metavar="EP")
+    show.add_argument("episode", metavar="EP", help="an episode directory")
     show.add_argument("--json", action="store_true", help="print the summary as JSON")
     show.add_argument(
         "--meta", action="store_true", help="also print the metadata (car config, model, ...)"
