@@ -26,6 +26,7 @@ from carrt import __version__
 from carrt import config as car_config
 from carrt.clock import WallClock
 from carrt.errors import UserError
+from carrt.progress import recording_bar
 from firmware_bridge.link import BoardLink, LinkError
 
 FIRST_FRAME_TIMEOUT_S = 3.0
@@ -277,7 +278,8 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
         stack.callback(rig.joystick.stop)
         stopped_by = _stop_on_signals(loop, stack)
         LOG.info(f"carrt {'drive' if policy else 'teleop'}: {rig.describe}")
-        summary = loop.run()
+        with recording_bar(loop, enabled=args.record):
+            summary = loop.run()
     print(summary.render())
     if rig.finish is not None:
         rig.finish(summary)
