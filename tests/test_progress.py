@@ -16,7 +16,7 @@ class Terminal(io.StringIO):
 
 
 class FakeLoop:
-    class summary:  # noqa: N801 - stands in for LoopSummary's counters
+    class summary:  # stands in for LoopSummary's counters
         recorded_steps = 0
         dropped_steps = 0
 
