@@ -269,6 +269,9 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             record=args.record,
             episode_metadata=metadata,
             max_steps=None if args.duration is None else round(args.duration * config.loop.rate_hz),
+            # the scripted expert arms and disarms once per episode: its mode changes are
+            # detail (-v), not news, or a 20-episode recording prints 40 of them
+            log=LOG.debug if getattr(args, "expert", None) == "auto" else LOG.info,
         )
         for follower in rig.follows_mode:  # the sim's pilot and trajectory tracker
             follower.mode_source = lambda: loop.arbiter.mode

@@ -231,3 +231,16 @@ def test_ctrl_c_ends_a_drive_cleanly_with_exit_130(tmp_path):
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "completion ratio" in out
     assert all(read_episode(p).end_reason != "crashed" for p in list_episodes(tmp_path / "eps"))
+
+
+@pytest.mark.parametrize("command", ["calibrate", "teleop", "config check"])
+def test_nan_in_a_setting_is_one_line_and_exit_2(tmp_path, command):
+    car = tmp_path / "car.toml"
+    car.write_text("")
+    args = {
+        "calibrate": ["calibrate", "--config", car, "--port", tmp_path / "ttyUSB0"],
+        "teleop": ["teleop", "--port", tmp_path / "ttyUSB0"],
+        "config check": ["config", "check", car],
+    }[command]
+    result = carrt(*args, "--set", "pwm.max_forward=nan")
+    assert_one_line_error(result, "pwm.max_forward", "finite")
