@@ -52,8 +52,8 @@ def _stage(name, cfg, policy, world_model, windows, free, norm):
 def profile_throughput(profile: str, episodes) -> dict:
     import torch
 
+    from training.config import PRESETS, IterateConfig
     from training.data import FrameStore, ImitationDataset, WindowDataset, compute_normalisation
-    from training.iterate import PRESETS, IterateConfig
     from training.models import PolicyNet, WorldModel, count_parameters
 
     preset = {**PRESETS[profile], "eval_every": 0}

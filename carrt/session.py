@@ -18,19 +18,15 @@ import secrets
 import signal
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from carrt import __version__
 from carrt import config as car_config
-from carrt.clock import WallClock
 from carrt.errors import UserError
 from carrt.progress import recording_bar
+from carrt.rig import open_car_rig
 from firmware_bridge.link import BoardLink, LinkError
-
-FIRST_FRAME_TIMEOUT_S = 3.0
-
 
 LOG = logging.getLogger(__name__)
 
@@ -159,46 +155,6 @@ def run_drive(args: argparse.Namespace) -> int:
     return _run(args, load_config(args), model_path=args.model)
 
 
-@dataclass
-class Rig:
-    """What the loop drives: the real car, or the simulator standing in for it."""
-
-    clock: Any
-    camera: Any
-    link: BoardLink
-    joystick: Any
-    describe: str
-    collisions: Any = None
-    follows_mode: list = field(default_factory=list)  # things that need the loop's mode
-    watches_loop: list = field(default_factory=list)  # shown the loop's LiveStatus (a window)
-    finish: Any = None  # called with the loop summary (the simulator prints its metrics)
-
-
-def open_car_rig(stack: contextlib.ExitStack, args: argparse.Namespace, config) -> Rig:
-    """The real car: OpenCV camera, serial board, pygame pad; each checked before the next."""
-    from carrt.camera import OpenCVCamera
-    from carrt.joystick import PygameJoystick
-
-    camera = OpenCVCamera(config.camera, clock=WallClock())
-    camera.start()
-    stack.callback(camera.stop)
-    _wait_first_frame(camera, config.camera.source)
-    link = BoardLink(
-        config.serial.port,
-        config.serial.baud,
-        handshake_timeout_s=config.serial.handshake_timeout_s,
-    )
-    link.open()
-    stack.callback(link.close)
-    return Rig(
-        clock=WallClock(),
-        camera=camera,
-        link=link,
-        joystick=PygameJoystick(config.joystick),
-        describe=f"board on {config.serial.port}, camera {config.camera.source}",
-    )
-
-
 def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str | None) -> int:
     # Imported here: OpenCV, onnxruntime and pygame cost a second of start-up on a Jetson,
     # which `carrt check` and `carrt episodes` should not pay.
@@ -228,7 +184,7 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
 
             rig = open_sim_rig(stack, args, config, driving=policy is not None)
         else:
-            rig = open_car_rig(stack, args, config)
+            rig = open_car_rig(stack, config)
         link = rig.link
         ack = link.send_config(car_config.board_config(config))
         if ack.result != 0:
@@ -293,14 +249,6 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
     # Ctrl-C ends a drive cleanly (summary, episodes closed, car stopped), and still exits as
     # every other command stopped by a signal does: 128 + the signal (130 for Ctrl-C).
     return 128 + stopped_by[0] if stopped_by else 0
-
-
-def _wait_first_frame(camera: Any, source: str) -> None:
-    deadline = time.monotonic() + FIRST_FRAME_TIMEOUT_S
-    while camera.latest() is None:
-        if camera.lost or time.monotonic() > deadline:
-            raise UserError(f"camera {source}: no frame within {FIRST_FRAME_TIMEOUT_S:.0f} s")
-        time.sleep(0.01)
 
 
 def _episode_metadata(config, policy, link: BoardLink, mode: str) -> dict[str, Any]:

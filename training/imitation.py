@@ -29,7 +29,7 @@ from training.data import take
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 
 if TYPE_CHECKING:
-    from training.iterate import IterateConfig
+    from training.config import IterateConfig
 
 
 def imitation_loss(policy: nn.Module, batch: dict) -> tuple[torch.Tensor, dict]:

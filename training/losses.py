@@ -15,13 +15,42 @@ or evidence of 1e9 stay finite in value and gradient.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
-if TYPE_CHECKING:
-    from training.models import NIG
+NU_MIN = 1e-5  # ν floor (evidential pitfalls: ν → 0 makes the NLL blow up)
+ALPHA_MARGIN = 1e-3  # α ≥ 1 + margin, so the uncertainty β/(α − 1) stays finite
+BETA_MIN = 1e-6
+
+
+@dataclass
+class NIG:
+    """Normal-Inverse-Gamma parameters; the prediction is γ. ν > 0, α > 1, β > 0."""
+
+    gamma: Tensor
+    nu: Tensor
+    alpha: Tensor
+    beta: Tensor
+
+    def map(self, fn: Callable[[Tensor], Tensor]) -> NIG:
+        """The same op on all four (index, detach, reshape, .to(device))."""
+        return NIG(fn(self.gamma), fn(self.nu), fn(self.alpha), fn(self.beta))
+
+    @classmethod
+    def from_raw(cls, raw: Tensor, dim: int) -> NIG:
+        """Split four raw channels along `dim` and constrain them (DESIGN §2 pitfalls)."""
+        gamma, nu, alpha, beta = raw.unbind(dim)
+        return cls(
+            gamma=gamma,
+            nu=F.softplus(nu).clamp(min=NU_MIN),
+            alpha=F.softplus(alpha) + 1.0 + ALPHA_MARGIN,
+            beta=F.softplus(beta) + BETA_MIN,
+        )
+
 
 _LOG_PI = math.log(math.pi)
 _LOG_2 = math.log(2.0)

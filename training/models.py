@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -19,15 +19,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from carrt.model_contract import ACTION_HIGH, ACTION_LOW
-from training.losses import dirichlet_uncertainty, nig_uncertainty
+from training.losses import NIG, dirichlet_uncertainty, nig_uncertainty
 from training.profiles import Profile
 
 if TYPE_CHECKING:
     from training.data import Normalisation
-
-NU_MIN = 1e-5  # ν floor (evidential pitfalls: ν → 0 makes the NLL blow up)
-ALPHA_MARGIN = 1e-3  # α ≥ 1 + margin, so the uncertainty β/(α − 1) stays finite
-BETA_MIN = 1e-6
 
 
 # --------------------------------------------------------------------------------- backbone
@@ -224,31 +220,6 @@ class PolicyNet(_Normalised):
 
 
 # ------------------------------------------------------------------------------- world model
-@dataclass
-class NIG:
-    """Normal-Inverse-Gamma parameters; the prediction is γ. ν > 0, α > 1, β > 0."""
-
-    gamma: Tensor
-    nu: Tensor
-    alpha: Tensor
-    beta: Tensor
-
-    def map(self, fn: Callable[[Tensor], Tensor]) -> NIG:
-        """The same op on all four (index, detach, reshape, .to(device))."""
-        return NIG(fn(self.gamma), fn(self.nu), fn(self.alpha), fn(self.beta))
-
-    @classmethod
-    def from_raw(cls, raw: Tensor, dim: int) -> NIG:
-        """Split four raw channels along `dim` and constrain them (DESIGN §2 pitfalls)."""
-        gamma, nu, alpha, beta = raw.unbind(dim)
-        return cls(
-            gamma=gamma,
-            nu=F.softplus(nu).clamp(min=NU_MIN),
-            alpha=F.softplus(alpha) + 1.0 + ALPHA_MARGIN,
-            beta=F.softplus(beta) + BETA_MIN,
-        )
-
-
 @dataclass
 class WorldPrediction:
     image: NIG  # each (N, H, 3, P, P), normalised image units

@@ -41,8 +41,8 @@ from training.trainer import RunContext, StageResult, StageSpec, run_stage
 from training.world_training import Targets
 
 if TYPE_CHECKING:
+    from training.config import IterateConfig
     from training.data import Normalisation
-    from training.iterate import IterateConfig
 
 
 class PolicySampler(nn.Module):

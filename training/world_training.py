@@ -23,8 +23,8 @@ from training.losses import evidential_classification_loss, evidential_regressio
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 
 if TYPE_CHECKING:
+    from training.config import IterateConfig
     from training.data import Normalisation
-    from training.iterate import IterateConfig
 
 
 class Targets(nn.Module):

@@ -19,6 +19,7 @@ from typing import Any
 
 from carrt.clock import SimClock, WallClock
 from carrt.interfaces import Mode
+from carrt.rig import Rig
 from carrt.sim.camera import SimCamera
 from carrt.sim.metrics import TrajectoryRecorder
 from carrt.sim.pilot import SimPilot
@@ -61,7 +62,6 @@ class Tracker:
 def open_sim_rig(
     stack: contextlib.ExitStack, args: argparse.Namespace, config: Any, *, driving: bool
 ) -> Any:
-    from carrt.session import Rig  # the rig dataclass lives with the car's rig
     from carrt.sim.expert import ScriptedExpert
     from carrt.sim.render import Renderer
     from carrt.sim.world import SimWorld

@@ -1,0 +1,67 @@
+"""What the control loop drives: the real car's parts, or the simulator's, as one `Rig`.
+
+The session builds a rig, hands its parts to the loop and calls `finish` at the end; it does not
+know which kind it has. The car's rig is here; the simulator's is `carrt/sim/rig.py`, which
+imports this module (and nothing imports back), so the two never form an import circle.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from carrt.clock import WallClock
+from carrt.errors import UserError
+from firmware_bridge.link import BoardLink
+
+FIRST_FRAME_TIMEOUT_S = 3.0
+
+
+@dataclass
+class Rig:
+    """What the loop drives: the real car, or the simulator standing in for it."""
+
+    clock: Any
+    camera: Any
+    link: BoardLink
+    joystick: Any
+    describe: str
+    collisions: Any = None
+    follows_mode: list = field(default_factory=list)  # things that need the loop's mode
+    watches_loop: list = field(default_factory=list)  # shown the loop's LiveStatus (a window)
+    finish: Any = None  # called with the loop summary (the simulator prints its metrics)
+
+
+def open_car_rig(stack: contextlib.ExitStack, config: Any) -> Rig:
+    """The real car: OpenCV camera, serial board, pygame pad; each checked before the next."""
+    from carrt.camera import OpenCVCamera
+    from carrt.joystick import PygameJoystick
+
+    camera = OpenCVCamera(config.camera, clock=WallClock())
+    camera.start()
+    stack.callback(camera.stop)
+    _wait_first_frame(camera, config.camera.source)
+    link = BoardLink(
+        config.serial.port,
+        config.serial.baud,
+        handshake_timeout_s=config.serial.handshake_timeout_s,
+    )
+    link.open()
+    stack.callback(link.close)
+    return Rig(
+        clock=WallClock(),
+        camera=camera,
+        link=link,
+        joystick=PygameJoystick(config.joystick),
+        describe=f"board on {config.serial.port}, camera {config.camera.source}",
+    )
+
+
+def _wait_first_frame(camera: Any, source: str) -> None:
+    deadline = time.monotonic() + FIRST_FRAME_TIMEOUT_S
+    while camera.latest() is None:
+        if camera.lost or time.monotonic() > deadline:
+            raise UserError(f"camera {source}: no frame within {FIRST_FRAME_TIMEOUT_S:.0f} s")
+        time.sleep(0.01)

@@ -1,0 +1,159 @@
+"""Every number of a training iteration, in one documented dataclass, and how `--set` changes it.
+
+The stages (imitation, world model, refinement), iterate.py, the benchmarks and the study all
+read this one config, and none of them imports it back from iterate.py, so the stages stand
+alone. A profile name picks model sizes (training/profiles.py) and a preset of steps and batch
+sizes (PRESETS); `--set field=value` overrides any field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from carrt.errors import UserError
+from training.profiles import PROFILES, Profile, get_profile
+
+
+class UsageError(UserError):
+    """Bad input from the user: printed as one line, exit status 2."""
+
+
+@dataclass
+class IterateConfig:
+    """Everything one iteration does. Defaults are the paper's numbers where it gives them."""
+
+    # -- data and run
+    episodes: tuple[str, ...] = ()  # episode directories, or directories of them
+    out: str = ""  # run directory: checkpoints, policy.pt, policy.onnx, report.md, figures
+    init: str | None = None  # previous iteration's run directory (None: iteration 1)
+    profile: str = "cpu"  # model sizes and presets: tiny (tests), cpu (a laptop), paper (GPU)
+    val_fraction: float = 0.1  # share of PLACEMENTS held out (data.split_by_placement)
+    seed: int = 0  # seeds model init, batch order and refinement noise
+    device: str = "auto"  # auto (cuda if available), cpu, cuda, cuda:N
+    num_workers: int = 0  # DataLoader worker processes per training process
+    threads: int = 0  # torch intra-op threads per process (0: torch's default)
+    # -- stage 1: imitation (L1 between μ and a*, collision-free windows)
+    imitation_steps: int = 20000  # optimizer steps (the paper gives none; our choice)
+    imitation_batch_size: int = 128  # global batch (paper: 128)
+    imitation_lr: float = 1e-3  # Adam (paper: 1e-3)
+    imitation_lr_final: float = 0.05  # cosine decay to lr·this at the last step (1: constant)
+    intervention_weight: float = 1.0  # weight of a* from a person's take-over in AUTO
+    augment: bool = False  # per-sample colour jitter of imitation frames (training/augment.py)
+    augment_hue: float = 0.5  # max hue rotation, share of a half turn (obstacle colours vary)
+    augment_saturation: float = 0.3  # max relative saturation change
+    augment_brightness: float = 0.2  # max brightness shift, share of full scale
+    augment_contrast: float = 0.2  # max relative contrast change
+    # -- stage 2: world model (evidential image/speed regression + collision classification)
+    world_model_steps: int = 30000  # optimizer steps (our choice)
+    world_model_batch_size: int = 32  # global batch (paper: 32)
+    world_model_lr: float = 5e-4  # Adam (paper: 5e-4)
+    w_image: float = 1.0  # weight of L_image in L_w
+    w_speed: float = 1.0  # weight of L_speed in L_w
+    w_collision: float = 1.0  # weight of L_collision in L_w
+    collision_weight: float = 0.0  # weight of the collision class; 0 = n_safe/n_collision
+    evidential_lambda: float = 0.01  # λ of the evidential regulariser |y−γ|(2ν+α)
+    # -- stage 3: refinement in imagination
+    refine_steps: int = 5000  # optimizer steps (our choice)
+    refine_batch_size: int = 36  # global batch of start frames (paper: 36)
+    refine_lr: float = 1e-5  # Adam (paper: 1e-5)
+    refine_w_speed: float = 1.0  # reward per imagined m/s, per step
+    refine_w_collision: float = 10.0  # cost of imagined collision probability, per step
+    refine_w_uncertainty: float = 1.0  # cost of u_i + u_s + u_c, per step
+    uncertainty_clip: float = 10.0  # each u is clipped here in the refinement loss
+    no_uncertainty: bool = False  # the paper's "-unc" ablation: w_unc = 0
+    # safeguard: Σ|μ−μ_start|² per start; 10 chosen by driving on validation placements
+    # (docs/dirl_anchor_validation.json: without it refinement took completion 0.84 → 0.18);
+    # 0: the paper's form
+    refine_w_anchor: float = 10.0
+    # -- the world model's counterfactual check (simulator only: training/counterfactual.py)
+    counterfactual_starts: int = 0  # start states per placement; 0: off (a real car's data)
+    counterfactual_layout: str = "hard"  # simulator layout of the held-out placements
+    counterfactual_tracks: str = "200-204"  # held-out placements (never 100-104, the test set)
+    # -- every stage
+    grad_clip: float = 1.0  # max global gradient norm
+    log_every: int = 10  # steps between logged scalars (TensorBoard, loss history)
+    ckpt_every: int = 500  # steps between checkpoints (also one at the end of each stage)
+    eval_every: int = 0  # steps between held-out losses during training (0: off)
+    eval_windows: int = 2048  # held-out windows used by the final metrics
+    stop_after: int = 0  # stop after this many steps in this invocation (0: never); resumable
+    export: bool = True  # write policy.onnx through export.export_policy
+    figures: bool = True  # write figures/*.png
+    progress: bool = True  # tqdm bars on rank 0
+
+    @property
+    def profile_obj(self) -> Profile:
+        return get_profile(self.profile)
+
+    def validate(self) -> None:
+        if self.profile not in PROFILES:
+            raise UsageError(
+                f"unknown profile {self.profile!r}; choose one of {', '.join(PROFILES)}"
+            )
+        positive = [
+            "imitation_batch_size", "world_model_batch_size", "refine_batch_size", "log_every",
+            "imitation_lr", "world_model_lr", "refine_lr", "grad_clip", "uncertainty_clip",
+            "imitation_lr_final",
+            "eval_windows",
+        ]  # fmt: skip
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise UsageError(f"{name} must be > 0, got {getattr(self, name)}")
+        non_negative = [
+            "imitation_steps", "world_model_steps", "refine_steps", "ckpt_every", "eval_every",
+            "stop_after", "num_workers", "collision_weight", "threads", "intervention_weight",
+            "augment_hue", "augment_saturation", "augment_brightness", "augment_contrast",
+            "counterfactual_starts", "refine_w_anchor",
+        ]  # fmt: skip
+        for name in non_negative:
+            if getattr(self, name) < 0:
+                raise UsageError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise UsageError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
+
+
+# Steps and batches per profile, applied before --steps/--set: the paper's numbers need a GPU.
+PRESETS: dict[str, dict] = {
+    "tiny": dict(imitation_steps=30, world_model_steps=30, refine_steps=20,
+                 imitation_batch_size=16, world_model_batch_size=8, refine_batch_size=8,
+                 refine_lr=1e-4, log_every=1, ckpt_every=10, eval_windows=256),
+    "cpu": dict(imitation_steps=2000, world_model_steps=3000, refine_steps=500,
+                imitation_batch_size=64, world_model_batch_size=32, refine_batch_size=16,
+                log_every=10, ckpt_every=250, eval_every=500, augment=True),
+    "paper": dict(eval_every=1000, augment=True),
+}  # fmt: skip
+
+SETTABLE = [f.name for f in dataclasses.fields(IterateConfig) if f.name not in ("episodes", "out")]
+
+
+def _parse_value(name: str, text: str, current):
+    kind = {f.name: f.type for f in dataclasses.fields(IterateConfig)}[name]
+    try:
+        if "bool" in kind:
+            low = text.strip().lower()
+            if low not in ("1", "0", "true", "false", "yes", "no", "on", "off"):
+                raise ValueError(text)
+            return low in ("1", "true", "yes", "on")
+        if "None" in kind and text.strip().lower() in ("", "none"):
+            return None
+        if kind.startswith("int"):
+            return int(text)
+        if kind.startswith("float"):
+            return float(text)
+        return text
+    except ValueError:
+        raise UsageError(f"--set {name}={text}: not a valid {kind}") from None
+
+
+def apply_set(cfg: IterateConfig, items: list[str]) -> IterateConfig:
+    for item in items:
+        name, eq, text = item.partition("=")
+        name = name.strip()
+        if not eq or not name:
+            raise UsageError(f"--set {item!r}: expected field=value")
+        if name not in SETTABLE:
+            raise UsageError(
+                f"--set {name}: unknown field (see IterateConfig in training/config.py)"
+            )
+        cfg = dataclasses.replace(cfg, **{name: _parse_value(name, text, getattr(cfg, name))})
+    return cfg
