@@ -29,8 +29,8 @@ from dataclasses import dataclass
 from carrt.config import CameraConfig, EncoderConfig
 from carrt.interfaces import JoystickState, Mode
 from firmware_bridge.messages import Reason, State
+from firmware_bridge.timing import BOARD_GRACE_S
 
-BOARD_GRACE_S = 1.0
 """How long the board may lag a clear or an arm before the host stops waiting for it."""
 
 DEFAULT_ESTOP_WHY = "joystick: e-stop button pressed or pad removed"

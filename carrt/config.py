@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from carrt.errors import UserError
+from firmware_bridge import timing
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -79,8 +80,9 @@ class CameraConfig:
     crop_left: float = opt(0.0, "fraction cut from the left", lo=0.0, hi=0.9)
     crop_right: float = opt(0.0, "fraction cut from the right", lo=0.0, hi=0.9)
     max_age_s: float = opt(
-        0.15, "a frame older than this is refused: neutral command", lo=0.01, hi=1.0
-    )
+        timing.CAMERA_MAX_AGE_S, "a frame older than this is refused: neutral command",
+        lo=0.01, hi=1.0,
+    )  # fmt: skip
     lost_after_s: float = opt(
         1.0, "no new frame for this long: camera lost, e-stop", lo=0.1, hi=10.0
     )
@@ -93,8 +95,9 @@ class EncoderConfig:
         0.005, "distance per encoder tick (measure: push the car 1 m, count ticks)", lo=1e-6, hi=1.0
     )
     max_age_s: float = opt(
-        0.1, "telemetry older than this is refused: neutral command", lo=0.01, hi=1.0
-    )
+        timing.ENCODER_MAX_AGE_S, "telemetry older than this is refused: neutral command",
+        lo=0.01, hi=1.0,
+    )  # fmt: skip
     speed_window_s: float = opt(
         0.1, "speed is ticks over this window, from board timestamps", lo=0.02, hi=1.0
     )
@@ -143,7 +146,7 @@ class NoiseConfig:
 @dataclass
 class LoopConfig:
     rate_hz: float = opt(
-        10.0,
+        timing.LOOP_RATE_HZ,
         "control rate (the paper: 10 Hz); at least 5: the board fails safe when the decision "
         "has not changed for 300 ms",
         lo=5.0,

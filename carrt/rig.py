@@ -15,8 +15,7 @@ from typing import Any
 from carrt.clock import WallClock
 from carrt.errors import UserError
 from firmware_bridge.link import BoardLink
-
-FIRST_FRAME_TIMEOUT_S = 3.0
+from firmware_bridge.timing import FIRST_FRAME_TIMEOUT_S
 
 
 @dataclass

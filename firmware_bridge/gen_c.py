@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from firmware_bridge import messages as m
+from firmware_bridge import timing
 
 HEADER_PATH = Path(__file__).parent / "firmware" / "carrt_fw" / "src" / "protocol_generated.h"
 SPEC_PATH = Path(__file__).parent / "PROTOCOL.md"
@@ -76,6 +77,12 @@ def render() -> str:
         f"#define CARRT_FW_MAJOR {m.FIRMWARE_VERSION[0]}",
         f"#define CARRT_FW_MINOR {m.FIRMWARE_VERSION[1]}",
         f"#define CARRT_FW_PATCH {m.FIRMWARE_VERSION[2]}",
+        "",
+        "/* Timing (firmware_bridge/timing.py; part of the protocol hash) */",
+        *(
+            f"#define CARRT_T_{t.name} {int(t.value)}u /* {t.why} */"
+            for t in timing.board_entries()
+        ),
         "",
     ]
     for enum in (m.State, m.Reason, m.ArmRefusal, m.ConfigResult):

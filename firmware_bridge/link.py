@@ -39,8 +39,7 @@ from firmware_bridge.link_types import (
     _to_fixed,
     open_port,
 )
-
-SEND_PERIOD_S = 0.02  # 50 Hz
+from firmware_bridge.timing import SEND_PERIOD_S
 
 
 class BoardLink(ReceivePath):

@@ -26,9 +26,7 @@ from firmware_bridge.link_types import (
     TelemetrySample,
     open_port,
 )
-
-HELLO_RETRY_S = 0.1
-RECONNECT_RETRY_S = 0.1
+from firmware_bridge.timing import HELLO_RETRY_S, RECONNECT_RETRY_S
 
 
 class ReceivePath:

@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any, ClassVar
 
+from firmware_bridge import timing
+
 SCALE = 10000
 """Fixed-point scale of steering and throttle on the wire (1.0 == SCALE)."""
 
@@ -257,6 +259,8 @@ def canonical_definition() -> str:
         lines.append(f"{m.__name__}={m.TYPE:#04x}/{m.DIRECTION}({body})")
     for enum in (State, Reason, ArmRefusal, ConfigResult):
         lines.append(enum.__name__ + "=" + ",".join(f"{e.name}:{e.value}" for e in enum))
+    # the board's watchdog and freshness timing: a board with other values is another protocol
+    lines.append(timing.canonical())
     return "\n".join(lines) + "\n"
 
 

@@ -1,8 +1,8 @@
 """The firmware's safety rules, checked on the real C core with a fake clock.
 
 Every time below is an explicit millisecond value handed to the core, so the boundaries
-(200 ms watchdog, 300 ms freshness, 500 ms stall, 100 ms wheels-stopped) are tested to the
-millisecond, including across the 32-bit wrap of the board's clock.
+(the watchdog, freshness, stall and wheels-stopped times of firmware_bridge/timing.py, used by
+name) are tested to the millisecond, including across the 32-bit wrap of the board's clock.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from firmware_bridge import codec
 from firmware_bridge import messages as m
 from firmware_bridge.messages import ArmRefusal, ConfigResult, Reason, State
 from firmware_bridge.native import FirmwareCore
+from firmware_bridge.timing import DECISION_STALE_MS, LINK_TIMEOUT_MS, STALL_MS
 
 ESTOP = m.CommandFlags.ESTOP
 ARM = m.CommandFlags.ARM
@@ -112,11 +113,12 @@ def test_pong_echoes_nonce_and_board_time():
 
 
 @pytest.mark.parametrize("start", [0, NEAR_WRAP], ids=["t0", "across-wrap"])
-def test_link_watchdog_fires_at_exactly_200_ms(start):
+def test_link_watchdog_fires_at_exactly_the_link_timeout(start):
+    assert LINK_TIMEOUT_MS == 200  # the table's value, as PROTOCOL.md and the README state it
     b = Bench(now=start)
     b.arm()
     b.run(100, throttle=1000)  # last command at b.now
-    b.run(199, every=None)
+    b.run(LINK_TIMEOUT_MS - 1, every=None)
     assert b.core.state == State.ARMED
     assert b.core.throttle_us == 1550
     b.run(1, every=None)
@@ -132,7 +134,7 @@ def test_only_commands_feed_the_watchdog():
         b.send(m.Ping(1))
         b.send(m.HelloRequest())
         b.run(10, every=None)
-        if b.now - last >= 200:
+        if b.now - last >= LINK_TIMEOUT_MS:
             break
     assert (b.core.state, b.core.reason) == (State.FAILSAFE, Reason.LINK_TIMEOUT)
 
@@ -140,17 +142,18 @@ def test_only_commands_feed_the_watchdog():
 def test_a_late_command_does_not_hide_a_gap_without_ticks():
     b = Bench()
     b.arm()
-    b.now += 250  # the main loop hung: no tick ran, then a command arrives
+    b.now += LINK_TIMEOUT_MS + 50  # the main loop hung: no tick ran, then a command arrives
     b.command(flags=ARM)
     assert (b.core.state, b.core.reason) == (State.FAILSAFE, Reason.LINK_TIMEOUT)
 
 
 @pytest.mark.parametrize("start", [0, NEAR_WRAP], ids=["t0", "across-wrap"])
-def test_stale_decision_fails_safe_at_300_ms_while_frames_keep_coming(start):
+def test_stale_decision_fails_safe_at_the_freshness_limit_while_frames_keep_coming(start):
+    assert DECISION_STALE_MS == 300
     b = Bench(now=start)
     b.arm()
     stuck = b.decision
-    b.run(299, decision_id=stuck)
+    b.run(DECISION_STALE_MS - 1, decision_id=stuck)
     assert b.core.state == State.ARMED
     b.run(1, decision_id=stuck)
     assert (b.core.state, b.core.reason) == (State.FAILSAFE, Reason.DECISION_STALE)
@@ -163,13 +166,13 @@ def test_freshness_is_measured_from_the_last_change_and_checked_on_commands():
     b.run(100)  # fresh ids
     stuck = b.decision
     t = b.now
-    for dt in range(20, 300, 20):  # commands only, no ticks
+    for dt in range(20, DECISION_STALE_MS, 20):  # commands only, no ticks
         b.now = t + dt
         b.command(flags=ARM, decision_id=stuck)
-    b.now = t + 299
+    b.now = t + DECISION_STALE_MS - 1
     b.command(flags=ARM, decision_id=stuck)
     assert b.core.state == State.ARMED
-    b.now = t + 300
+    b.now = t + DECISION_STALE_MS
     b.command(flags=ARM, decision_id=stuck)
     assert (b.core.state, b.core.reason) == (State.FAILSAFE, Reason.DECISION_STALE)
 
@@ -379,8 +382,8 @@ def test_an_encoder_tick_restarts_the_stall_timer():
     b.arm()
     b.command(throttle=10000, flags=ARM)
     b.run(300, throttle=10000)
-    b.set_encoder(1)  # seen by the next tick, which restarts the 500 ms
-    b.run(500, throttle=10000)
+    b.set_encoder(1)  # seen by the next tick, which restarts the stall time
+    b.run(STALL_MS, throttle=10000)
     assert b.core.state == State.ARMED
     b.run(1, throttle=10000)
     assert (b.core.state, b.core.reason) == (State.FAILSAFE, Reason.STALL)
@@ -394,7 +397,7 @@ def test_throttle_dipping_below_15_percent_restarts_the_stall_timer():
     b.run(300, throttle=10000)  # above 15 % since the second tick
     b.command(throttle=1000, flags=ARM)  # a dip, undone before the next tick
     b.command(throttle=10000, flags=ARM)
-    b.run(500, throttle=10000)
+    b.run(STALL_MS, throttle=10000)
     assert b.core.state == State.ARMED
     b.run(1, throttle=10000)
     assert (b.core.state, b.core.reason) == (State.FAILSAFE, Reason.STALL)

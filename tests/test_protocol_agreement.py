@@ -90,3 +90,20 @@ def test_crc_check_value():
 @given(data=st.binary(max_size=300))
 def test_crc_agrees_with_binascii(data):
     assert native.crc16(data) == binascii.crc_hqx(data, 0xFFFF)
+
+
+def test_the_boards_timing_is_part_of_the_protocol(monkeypatch):
+    """A board flashed with another watchdog speaks another protocol: refused at the HELLO."""
+    from firmware_bridge import timing
+
+    header = gen_c.HEADER_PATH.read_text()
+    for entry in timing.board_entries():
+        assert f"#define CARRT_T_{entry.name} {int(entry.value)}u" in header
+    assert "LINK_TIMEOUT_MS=200" in m.canonical_definition()
+    before = m.canonical_definition()
+    other = tuple(
+        timing.Timing(t.name, 201, t.unit, t.side, t.why) if t.name == "LINK_TIMEOUT_MS" else t
+        for t in timing.TABLE
+    )
+    monkeypatch.setattr(timing, "TABLE", other)
+    assert m.canonical_definition() != before

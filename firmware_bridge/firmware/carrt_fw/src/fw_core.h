@@ -22,11 +22,13 @@
 extern "C" {
 #endif
 
-#define FW_LINK_TIMEOUT_MS 200u
-#define FW_DECISION_STALE_MS 300u
-#define FW_STALL_MS 500u
-#define FW_WHEELS_STOPPED_MS 100u
-#define FW_TELEMETRY_PERIOD_MS 20u
+/* Timing comes from firmware_bridge/timing.py through protocol_generated.h (and is part of the
+ * protocol hash): one table for the host and the board. */
+#define FW_LINK_TIMEOUT_MS CARRT_T_LINK_TIMEOUT_MS
+#define FW_DECISION_STALE_MS CARRT_T_DECISION_STALE_MS
+#define FW_STALL_MS CARRT_T_STALL_MS
+#define FW_WHEELS_STOPPED_MS CARRT_T_WHEELS_STOPPED_MS
+#define FW_TELEMETRY_PERIOD_MS CARRT_T_TELEMETRY_PERIOD_MS
 #define FW_ARM_THROTTLE_MAX 200     /* |throttle| <= 2 % counts as neutral for arming */
 #define FW_STALL_THROTTLE 1500      /* applied throttle above 15 % forward can stall */
 

@@ -5,7 +5,7 @@
 
 #include <stdint.h>
 
-#define CARRT_PROTOCOL_HASH 0x08A82F66UL
+#define CARRT_PROTOCOL_HASH 0xBAA92F87UL
 #define CARRT_SCALE 10000
 #define CARRT_MAX_FRAME_DECODED 64
 #define CARRT_HEADER_SIZE 3
@@ -13,6 +13,13 @@
 #define CARRT_FW_MAJOR 0
 #define CARRT_FW_MINOR 1
 #define CARRT_FW_PATCH 0
+
+/* Timing (firmware_bridge/timing.py; part of the protocol hash) */
+#define CARRT_T_LINK_TIMEOUT_MS 200u /* no COMMAND for this long: FAILSAFE (neutral) */
+#define CARRT_T_DECISION_STALE_MS 300u /* the decision id unchanged for this long (a hung loop): FAILSAFE */
+#define CARRT_T_STALL_MS 500u /* throttle applied, wheels still for this long: FAILSAFE */
+#define CARRT_T_WHEELS_STOPPED_MS 100u /* no encoder tick for this long: wheels still */
+#define CARRT_T_TELEMETRY_PERIOD_MS 20u /* TELEMETRY every 20 ms (50 Hz) */
 
 /* The board's safety state. Only ARMED lets commands reach the outputs. */
 #define CARRT_STATE_DISARMED 0
