@@ -15,8 +15,7 @@ import math
 from pathlib import Path
 
 from carrt.errors import UserError
-
-LAYOUTS = ("empty", "easy", "hard", "mixed")  # carrt.sim.track.LAYOUTS, without importing it
+from carrt.sim import layouts
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -29,7 +28,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     who.add_argument("--model", help="policy .onnx to evaluate, or `demo` for the shipped one")
     who.add_argument("--expert", action="store_true", help="evaluate the scripted expert")
     parser.add_argument(
-        "--layout", default="hard", choices=LAYOUTS, help="obstacles (default: %(default)s)"
+        "--layout", default="hard", choices=layouts.NAMES, help="obstacles (default: %(default)s)"
     )
     parser.add_argument(
         "--tracks", default="100-104", help="placement seeds: ranges and lists, e.g. 100-104,120"

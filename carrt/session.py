@@ -26,6 +26,7 @@ from carrt import config as car_config
 from carrt.errors import UserError
 from carrt.progress import recording_bar
 from carrt.rig import open_car_rig
+from carrt.sim import layouts
 from firmware_bridge.link import BoardLink, LinkError
 
 LOG = logging.getLogger(__name__)
@@ -99,7 +100,7 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
     sim.add_argument(
         "--layout",
         default="easy",
-        choices=("empty", "easy", "hard", "mixed"),
+        choices=layouts.NAMES,
         help="obstacles: none, 2, 8, or mixed (4-10 per placement)",
     )
     sim.add_argument("--track-seed", type=int, default=0, help="obstacle placement seed")

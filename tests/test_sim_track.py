@@ -35,11 +35,13 @@ def test_same_layout_and_seed_give_the_identical_track(layout):
 
 
 def test_layouts_have_their_obstacle_counts_and_seeds_move_them():
-    for layout, count in LAYOUTS.items():
+    for layout, spec in LAYOUTS.items():
+        count = spec.obstacles
         low, high = count if isinstance(count, tuple) else (count, count)
         for seed in range(5):
             assert low <= len(build_track(layout, seed).obstacles) <= high
-    assert LAYOUTS == {"empty": 0, "easy": 2, "hard": 8, "mixed": (4, 10)}
+    counts = {name: spec.obstacles for name, spec in LAYOUTS.items()}
+    assert counts == {"empty": 0, "easy": 2, "hard": 8, "mixed": (4, 10)}
     assert build_track("hard", 0).obstacles != build_track("hard", 1).obstacles
     assert build_track("easy", 0).obstacles != build_track("hard", 0).obstacles[:2]
 
@@ -190,3 +192,20 @@ def test_start_pose_is_on_the_start_line_heading_along_the_track():
         s_ob = project(track, ob.x, ob.y)[0]
         assert 1.5 <= s_ob <= track.length - 0.3
         assert math.hypot(ob.x - x, ob.y - y) > 0.3
+
+
+def test_inserting_a_layout_moves_no_other_layouts_obstacles(monkeypatch):
+    """Placements come from each layout's own stream, not its position in the list: the
+    held-out evaluation placements must not move when someone adds a layout."""
+    from carrt.sim import layouts, track
+
+    def where(layout, seed):
+        return [(o.x, o.y, o.radius, o.colour) for o in track.build_track(layout, seed).obstacles]
+
+    before = {seed: where("hard", seed) for seed in (100, 104)}
+    grown = {"new": layouts.Layout(3, stream=99), **layouts.LAYOUTS}
+    monkeypatch.setattr(track, "LAYOUTS", grown)
+    assert list(grown).index("hard") != list(layouts.LAYOUTS).index("hard")
+    assert {seed: where("hard", seed) for seed in (100, 104)} == before
+    streams = [layout.stream for layout in layouts.LAYOUTS.values()]
+    assert len(set(streams)) == len(streams), "each layout has a stream of its own"

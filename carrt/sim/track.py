@@ -17,11 +17,8 @@ import math
 
 import numpy as np
 
+from carrt.sim.layouts import LAYOUTS
 from carrt.sim.types import Obstacle, Track
-
-# obstacles per placement: a fixed count, or (low, high) drawn per seed. "mixed" is the paper's
-# training setting (random positions, colours AND numbers); "hard" stays fixed for evaluation.
-LAYOUTS: dict[str, int | tuple[int, int]] = {"empty": 0, "easy": 2, "hard": 8, "mixed": (4, 10)}
 
 TRACK_WIDTH = 0.8
 SAMPLE_SPACING = 0.02  # centerline sampling, metres
@@ -52,9 +49,9 @@ def build_track(layout: str = "easy", seed: int = 0) -> Track:
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}; valid layouts: {', '.join(LAYOUTS)}")
     centerline, racing_line, length = _base_geometry()
-    rng = np.random.default_rng([int(seed) % 2**32, list(LAYOUTS).index(layout)])
+    rng = np.random.default_rng([int(seed) % 2**32, LAYOUTS[layout].stream])
     base = Track(layout, int(seed), centerline, TRACK_WIDTH, racing_line, length=length)
-    count = LAYOUTS[layout]
+    count = LAYOUTS[layout].obstacles
     if isinstance(count, tuple):
         count = int(rng.integers(count[0], count[1] + 1))
     obstacles = _place_obstacles(base, count, rng)
