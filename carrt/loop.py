@@ -28,6 +28,7 @@ import numpy as np
 from carrt.arbitration import Arbiter, ArbiterInputs, Decision
 from carrt.camera import preprocess
 from carrt.config import CarConfig
+from carrt.episode_rule import EpisodeRule
 from carrt.interfaces import (
     Camera,
     Clock,
@@ -50,6 +51,28 @@ NAN2 = (math.nan, math.nan)
 
 
 LOG = logging.getLogger(__name__)  # mode changes and refusals: what the person is told
+
+
+@dataclass
+class Tick:
+    """One tick's values, handed from stage to stage (sense → infer → arbitrate → actuate →
+    record); each stage fills in its part."""
+
+    start: float  # the tick's deadline on the loop's clock
+    now: float = math.nan  # when the arbiter decided
+    frame: Any = None  # CameraFrame | None
+    joystick: Any = None  # JoystickState
+    telemetry: Any = None  # TelemetrySample | None
+    collided: bool = False
+    image: np.ndarray | None = None  # the preprocessed 96×96 frame
+    speed: float = 0.0
+    plan: Any = None  # Plan | None: a fresh plan this tick
+    plan_action: tuple[float, float] | None = None
+    fallback_action: tuple[float, float] | None = None
+    decision: Decision | None = None
+    executed: tuple[float, float] = (0.0, 0.0)
+    noisy: bool = False
+    sent_at: float = math.nan
 
 
 class SectionTimer:
@@ -173,8 +196,7 @@ class ControlLoop:
         self._timings: dict[str, list[float]] = defaultdict(list)
         self._latency: list[float] = []
         self._lateness: list[float] = []
-        self._recording = False
-        self._record_paused = False
+        self.episodes = EpisodeRule(record=self.record)
         self._step_index = 0
         self._last_frame_seq = -1
         self._last_message = ""
@@ -219,91 +241,106 @@ class ControlLoop:
 
     # ------------------------------------------------------------------ one tick
     def _tick(self, tick_start: float) -> bool:
-        parts, clock = self.parts, self.parts.clock
-        sections = SectionTimer()
+        """sense → infer → arbitrate → actuate → record, one Tick passed along; timed."""
+        tick, sections = Tick(start=tick_start), SectionTimer()
+        self._sense(tick, sections)  # capture, preprocess
+        self._infer(tick)
+        sections.lap("inference")
+        self._arbitrate(tick)
+        sections.lap("arbitration")
+        self._actuate(tick)
+        sections.lap("actuation")
+        self._record(tick)
+        sections.lap("logging")
+        self._publish(tick, sections)
+        return not tick.joystick.events.quit
 
-        frame = parts.camera.latest()
-        joystick = parts.joystick.poll()
-        telemetry = parts.link.telemetry
-        collided = parts.collisions() if parts.collisions is not None else False
-        if collided:
+    def _sense(self, tick: Tick, sections: SectionTimer) -> None:
+        """The latest frame, sticks and telemetry, and whether the car hit something."""
+        parts = self.parts
+        tick.frame = parts.camera.latest()
+        tick.joystick = parts.joystick.poll()
+        tick.telemetry = parts.link.telemetry
+        tick.collided = parts.collisions() if parts.collisions is not None else False
+        if tick.collided:
             self.arbiter.estop("collision")
             self._collision_ended = True
             self.summary.collisions += 1
         sections.lap("capture")
-
-        image = preprocess(frame.image, self.config.camera) if frame is not None else None
-        speed = self.speed.update(telemetry.telemetry) if telemetry is not None else 0.0
+        if tick.frame is not None:
+            tick.image = preprocess(tick.frame.image, self.config.camera)
+        if tick.telemetry is not None:
+            tick.speed = self.speed.update(tick.telemetry.telemetry)
         sections.lap("preprocess")
 
-        t = clock.now()
-        plan, plan_action, fallback_action = None, None, None
-        if parts.policy is not None and image is not None and frame.seq != self._last_frame_seq:
-            if t - tick_start > 0.5 * self.period:
-                # Started too late for a fresh plan to be useful: fall back on the last plan.
-                self.summary.skipped_inferences += 1
-                fallback_action = self.plans.fallback()
-            else:
-                plan = parts.policy.predict(image, speed)
-                plan_action = self.plans.fresh(plan)
-                self._last_frame_seq = frame.seq
-        elif parts.policy is not None:
-            fallback_action = self.plans.fallback()
-        sections.lap("inference")
+    def _infer(self, tick: Tick) -> None:
+        """A fresh plan for a new frame, unless the tick started too late for it to help."""
+        policy, frame = self.parts.policy, tick.frame
+        if policy is None:
+            return
+        if tick.image is None or frame.seq == self._last_frame_seq:
+            tick.fallback_action = self.plans.fallback()
+        elif self.parts.clock.now() - tick.start > 0.5 * self.period:
+            self.summary.skipped_inferences += 1  # the last plan's next step instead
+            tick.fallback_action = self.plans.fallback()
+        else:
+            tick.plan = policy.predict(tick.image, tick.speed)
+            tick.plan_action = self.plans.fresh(tick.plan)
+            self._last_frame_seq = frame.seq
 
-        now = clock.now()
-        decision = self.arbiter.step(
+    def _arbitrate(self, tick: Tick) -> None:
+        """The arbiter decides what may be sent; noise injection perturbs what is executed."""
+        parts, frame = self.parts, tick.frame
+        tick.now = now = parts.clock.now()
+        tick.decision = decision = self.arbiter.step(
             ArbiterInputs(
                 now=now,
-                joystick=joystick,
+                joystick=tick.joystick,
                 frame_age_s=None if frame is None else now - frame.captured_at,
                 camera_lost=parts.camera.lost,
                 telemetry_age_s=parts.link.telemetry_age_s(),
                 board_state=parts.link.board_state,
-                plan_action=plan_action,
-                fallback_action=fallback_action,
-                board_reason=telemetry.telemetry.reason if telemetry is not None else 0,
+                plan_action=tick.plan_action,
+                fallback_action=tick.fallback_action,
+                board_reason=tick.telemetry.telemetry.reason if tick.telemetry else 0,
             )
         )
         self._report(decision)
-        self._count_laps(decision.mode, joystick.events.lap)
+        self._count_laps(decision.mode, tick.joystick.events.lap)
         if decision.mode != Mode.ESTOP:
             self._collision_ended = False  # a later e-stop by hand is not this collision
-        executed, noisy = (decision.steering, decision.throttle), False
-        if parts.noise is not None and self._recording and parts.noise.perturbs(decision.mode):
-            ns, nt, noisy = parts.noise.sample(now)
-            if noisy:
-                executed = parts.noise.apply(executed, (ns, nt))
-        sections.lap("arbitration")
+        tick.executed = (decision.steering, decision.throttle)
+        noise = parts.noise
+        if noise is not None and self.episodes.recording and noise.perturbs(decision.mode):
+            ns, nt, tick.noisy = noise.sample(now)
+            if tick.noisy:
+                tick.executed = noise.apply(tick.executed, (ns, nt))
 
-        self._forward_requests(decision)
-        sent_at = parts.link.set_command(*executed, send_now=True)
-        if sent_at is None:
-            sent_at = math.nan
-        elif frame is not None:
-            self._latency.append(sent_at - frame.captured_at)
-        sections.lap("actuation")
+    def _actuate(self, tick: Tick) -> None:
+        self._forward_requests(tick.decision)
+        sent_at = self.parts.link.set_command(*tick.executed, send_now=True)
+        tick.sent_at = math.nan if sent_at is None else sent_at
+        if sent_at is not None and tick.frame is not None:
+            self._latency.append(sent_at - tick.frame.captured_at)
 
-        self._log(frame, image, telemetry, speed, joystick, plan, plan_action, executed,
-                  decision, noisy, sent_at, collided)  # fmt: skip
-        sections.lap("logging")
-
+    def _publish(self, tick: Tick, sections: SectionTimer) -> None:
+        """Timings into the summary, and the tick's LiveStatus for whoever watches."""
         for name, seconds in sections.times.items():
             self._timings[name].append(seconds)
+        decision = tick.decision
         self.live = LiveStatus(
             mode=decision.mode,
             why=self.arbiter.estop_reason if decision.mode == Mode.ESTOP else decision.reason,
-            speed_mps=speed,
-            human=(joystick.steering, joystick.throttle),
-            executed=executed,
-            recording=self._recording,
+            speed_mps=tick.speed,
+            human=(tick.joystick.steering, tick.joystick.throttle),
+            executed=tick.executed,
+            recording=self.episodes.recording,
             episodes=self.summary.episodes,
             collisions=self.summary.collisions,
             laps=self.summary.laps,
         )
         mode_name = decision.mode.name
         self.summary.modes_s[mode_name] = self.summary.modes_s.get(mode_name, 0.0) + self.period
-        return not joystick.events.quit
 
     def _report(self, decision: Decision) -> None:
         """Tell the human what changed and why a press was refused (once per change)."""
@@ -326,53 +363,53 @@ class ControlLoop:
             link.request_arm()
 
     # ------------------------------------------------------------------ recording
-    def _log(self, frame, image, telemetry, speed, joystick, plan, plan_action, executed,
-             decision, noisy, sent_at, collided) -> None:  # fmt: skip
-        sink = self.parts.sink
-        events = joystick.events
-        if self.record and events.toggle_record:
-            self._record_paused = not self._record_paused
-        driving = decision.mode in (Mode.MANUAL, Mode.AUTO)
-        want = self.record and not self._record_paused and (driving or self._recording)
-        # An episode starts when the board confirms it is armed, not when the host asks: a
-        # refused arm must not leave a few-step episode of a car that never moved.
+    def _record(self, tick: Tick) -> None:
+        """The step into the episode writer's queue (never waits on disk); episodes begin and
+        end by carrt/episode_rule.py."""
+        sink, rule, decision = self.parts.sink, self.episodes, tick.decision
+        if tick.joystick.events.toggle_record:
+            rule.toggle_pause()
         board_armed = self.parts.link.board_state == m.State.ARMED
-        if want and not self._recording and driving and board_armed and image is not None:
+        if rule.should_begin(decision.mode, board_armed, tick.image is not None):
             sink.begin({**self.episode_metadata, "started_mode": decision.mode.name})
-            self._recording = True
+            rule.recording = True
             self.summary.episodes += 1
-        if not self._recording:
+        if not rule.recording:
             return
-        if image is not None:
-            step = Step(
-                index=self._step_index,
-                image=image,
-                frame_captured_at=frame.captured_at,
-                command_sent_at=sent_at,
-                wall_time=time.time(),
-                speed_mps=speed,
-                encoder_ticks=telemetry.telemetry.encoder_ticks if telemetry else 0,
-                human_action=(joystick.steering, joystick.throttle),
-                policy_action=plan_action if plan_action is not None else NAN2,
-                executed_action=executed,
-                mode=decision.mode,
-                override=decision.override,
-                estop=decision.mode == Mode.ESTOP,
-                noise=noisy,
-                collision=collided,
-                lap=events.lap,
-                plan_mu=None if plan is None else plan.mu,
-                plan_sigma=None if plan is None else plan.sigma,
-            )
-            self._step_index += 1
-            if sink.write(step):
+        if tick.image is not None:
+            if sink.write(self._step(tick)):
                 self.summary.recorded_steps += 1
             else:
                 self.summary.dropped_steps += 1
-        if not driving or self._record_paused:
+        if rule.should_end(decision.mode):
             sink.end(self._end_reason(decision.mode))
-            self._recording = False
+            rule.recording = False
             self._collision_ended = False
+
+    def _step(self, tick: Tick) -> Step:
+        decision, joystick, telemetry, plan = (tick.decision, tick.joystick, tick.telemetry,
+                                               tick.plan)  # fmt: skip
+        self._step_index += 1
+        return Step(
+            index=self._step_index - 1,
+            image=tick.image,
+            frame_captured_at=tick.frame.captured_at,
+            command_sent_at=tick.sent_at,
+            wall_time=time.time(),
+            speed_mps=tick.speed,
+            encoder_ticks=telemetry.telemetry.encoder_ticks if telemetry else 0,
+            human_action=(joystick.steering, joystick.throttle),
+            policy_action=tick.plan_action if tick.plan_action is not None else NAN2,
+            executed_action=tick.executed,
+            mode=decision.mode,
+            override=decision.override,
+            estop=decision.mode == Mode.ESTOP,
+            noise=tick.noisy,
+            collision=tick.collided,
+            lap=joystick.events.lap,
+            plan_mu=None if plan is None else plan.mu,
+            plan_sigma=None if plan is None else plan.sigma,
+        )
 
     def _end_reason(self, mode: Mode) -> str:
         failsafe = self.parts.link.board_state == m.State.FAILSAFE
@@ -393,9 +430,9 @@ class ControlLoop:
         link = self.parts.link
         link.disarm()
         link.set_command(0.0, 0.0, send_now=True)
-        if self._recording:
+        if self.episodes.recording:
             self.parts.sink.end("stopped")
-            self._recording = False
+            self.episodes.recording = False
         s = self.summary
         s.steps, s.duration_s = ticks, duration
         s.sections_ms = {name: _percentiles(self._timings[name]) for name in SECTIONS}
