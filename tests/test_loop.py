@@ -63,7 +63,7 @@ def built(tmp_path):
 
 
 def test_a_tick_senses_decides_actuates_and_records(built):
-    loop, plant, eps = built
+    loop, _, eps = built
     summary = loop.run()
     loop.parts.sink.flush()
     assert summary.steps == 50 and summary.overruns == 0
