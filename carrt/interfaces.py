@@ -106,6 +106,46 @@ class Joystick(Protocol):
         ...
 
 
+# ----------------------------------------------------------------------------- board
+@runtime_checkable
+class Board(Protocol):
+    """The microcontroller as the loop sees it: the last word on the car, behind a link.
+
+    Implemented by firmware_bridge.link.BoardLink over a serial port (the real board, or the
+    virtual one behind a pty) and by firmware_bridge.direct.DirectBoardLink over the same C core
+    in-process on a simulated clock. The loop cannot tell them apart.
+    """
+
+    counters: Any  # LinkCounters: frames, e-stops, reconnects (the summary reports them)
+    error: Exception | None  # a fatal link error (protocol mismatch) the session re-raises
+
+    @property
+    def telemetry(self) -> Any:
+        """The newest TelemetrySample (telemetry + host receive time), None before the first."""
+        ...
+
+    @property
+    def board_state(self) -> Any:
+        """messages.State as the board last reported it."""
+        ...
+
+    def telemetry_age_s(self) -> float: ...
+
+    def set_command(self, steering: float, throttle: float, *, send_now: bool = False) -> Any:
+        """The decision the link repeats to the board; returns when it went out (or None)."""
+        ...
+
+    def estop(self) -> None:
+        """E-stop on the wire now, from the caller's thread."""
+        ...
+
+    def request_arm(self) -> None: ...
+
+    def request_clear(self) -> None: ...
+
+    def disarm(self) -> None: ...
+
+
 # ----------------------------------------------------------------------------- policy
 @dataclass(frozen=True)
 class Plan:

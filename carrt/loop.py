@@ -30,6 +30,7 @@ from carrt.camera import preprocess
 from carrt.config import CarConfig
 from carrt.episode_rule import EpisodeRule
 from carrt.interfaces import (
+    Board,
     Camera,
     Clock,
     EpisodeSink,
@@ -44,7 +45,6 @@ from carrt.noise import NoiseInjector
 from carrt.plan import PlanBuffer
 from carrt.speed import SpeedEstimator
 from firmware_bridge import messages as m
-from firmware_bridge.link import BoardLink
 
 SECTIONS = ("capture", "preprocess", "inference", "arbitration", "actuation", "logging")
 NAN2 = (math.nan, math.nan)
@@ -96,7 +96,7 @@ class LoopParts:
 
     clock: Clock
     camera: Camera
-    link: BoardLink
+    link: Board
     joystick: Joystick
     policy: Policy | None = None
     sink: EpisodeSink | None = None

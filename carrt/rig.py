@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import contextlib
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from carrt.clock import WallClock
 from carrt.errors import UserError
+from carrt.interfaces import Board, Camera, Clock, Joystick
 from firmware_bridge.link import BoardLink
 from firmware_bridge.timing import FIRST_FRAME_TIMEOUT_S
 
@@ -22,15 +24,15 @@ from firmware_bridge.timing import FIRST_FRAME_TIMEOUT_S
 class Rig:
     """What the loop drives: the real car, or the simulator standing in for it."""
 
-    clock: Any
-    camera: Any
-    link: BoardLink
-    joystick: Any
+    clock: Clock
+    camera: Camera
+    link: Board
+    joystick: Joystick
     describe: str
-    collisions: Any = None
+    collisions: Callable[[], bool] | None = None  # the simulator reports crashes
     follows_mode: list = field(default_factory=list)  # things that need the loop's mode
     watches_loop: list = field(default_factory=list)  # shown the loop's LiveStatus (a window)
-    finish: Any = None  # called with the loop summary (the simulator prints its metrics)
+    finish: Callable[[Any], None] | None = None  # with the loop summary (the sim's metrics)
 
 
 def open_car_rig(stack: contextlib.ExitStack, config: Any) -> Rig:

@@ -121,3 +121,15 @@ def _inputs(now: float, joystick: JoystickState, board: m.State) -> ArbiterInput
         now=now, joystick=joystick, frame_age_s=0.01, camera_lost=False, telemetry_age_s=0.01,
         board_state=board,
     )  # fmt: skip
+
+
+def test_both_links_are_boards_to_the_loop(built):
+    """The Board contract (carrt/interfaces.py): the serial link and the in-process one."""
+    from carrt.interfaces import Board
+    from firmware_bridge.link import BoardLink
+
+    loop, _, _ = built
+    assert isinstance(loop.parts.link, Board)
+    members = [n for n in dir(Board) if not n.startswith("_")] + ["counters", "error"]
+    link = BoardLink("/dev/null/none")  # not opened: the contract is its shape
+    assert all(hasattr(link, name) for name in members), members

@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import random
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -59,21 +61,54 @@ class Tracker:
         return collided
 
 
+@dataclass(frozen=True)
+class SimRigConfig:
+    """Everything the simulator's rig takes from the command line, read once (carrt teleop /
+    drive --sim; `carrt eval` and the tests build one the same way)."""
+
+    layout: str = "easy"
+    track_seed: int = 0
+    seed: int = 0  # noise injection, the camera's phase, random starts
+    realtime: bool = False  # forced by a person driving
+    expert: bool = False  # --expert auto: the scripted expert drives (teleop)
+    autopilot: bool = False  # --autopilot: the policy drives and the pilot re-arms (drive)
+    pad: bool = False  # a joystick instead of the keyboard window
+    expert_intervene: bool = False
+    expert_noise: float = 0.0
+    random_start: bool = False
+    episodes: int | None = None
+    laps: int | None = None
+    out: str | None = None
+    plot: str | None = None
+    on_metrics: Callable[[Any, Any], None] | None = None  # `carrt eval` collects, not prints
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> SimRigConfig:
+        names = {f.name for f in dataclasses.fields(cls)} - {"expert"}
+        values = {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
+        return cls(expert=getattr(args, "expert", None) == "auto", **values)
+
+    @property
+    def scripted(self) -> bool:
+        return self.expert or self.autopilot
+
+
 def open_sim_rig(
     stack: contextlib.ExitStack, args: argparse.Namespace, config: Any, *, driving: bool
-) -> Any:
+) -> Rig:
     from carrt.sim.expert import ScriptedExpert
     from carrt.sim.render import Renderer
     from carrt.sim.world import SimWorld
 
-    world = SimWorld(layout=args.layout, seed=args.track_seed)
+    sim = SimRigConfig.from_args(args)
+    world = SimWorld(layout=sim.layout, seed=sim.track_seed)
     plant = SimPlant(world)
-    scripted = getattr(args, "expert", None) == "auto" or getattr(args, "autopilot", False)
-    if not scripted and not getattr(args, "pad", False):
+    scripted = sim.scripted
+    if not scripted and not sim.pad:
         from carrt.sim.keyboard import require_display
 
         require_display()  # before anything starts: a window nobody can see drives nothing
-    realtime = args.realtime or not scripted
+    realtime = sim.realtime or not scripted
     if realtime:
         from firmware_bridge.virtual import VirtualBoard
 
@@ -90,14 +125,14 @@ def open_sim_rig(
         where = "on the simulated clock"
     stack.callback(link.close)
     # The camera's phase against the loop's ticks is arbitrary on a real car: draw it per run.
-    phase = random.Random(args.seed).uniform(0.0, 1.0 / 30.0)
+    phase = random.Random(sim.seed).uniform(0.0, 1.0 / 30.0)
     camera = SimCamera(plant, Renderer(world.track), clock, realtime=realtime, phase_s=phase)
     camera.start()
     stack.callback(camera.stop)
 
     pilot = None
     if scripted:
-        intervene = driving and getattr(args, "expert_intervene", False)
+        intervene = driving and sim.expert_intervene
         wants_expert = not driving or intervene
         expert = ScriptedExpert(world.track, world.params) if wants_expert else None
         pilot = SimPilot(
@@ -105,17 +140,17 @@ def open_sim_rig(
             clock,
             expert=expert,
             engage_auto=driving,
-            episodes=args.episodes,
+            episodes=sim.episodes,
             # --episodes 2 alone must end: an expert that never crashes would otherwise drive
             # one endless episode (measured: 1,613 laps in 300 s of wall time)
-            laps_per_episode=args.laps if args.laps or not args.episodes else 1,
-            random_start=getattr(args, "random_start", False),
-            expert_noise=getattr(args, "expert_noise", 0.0),
-            seed=args.seed,
+            laps_per_episode=sim.laps if sim.laps or not sim.episodes else 1,
+            random_start=sim.random_start,
+            expert_noise=sim.expert_noise,
+            seed=sim.seed,
             intervene=intervene,
         )
         joystick: Any = pilot
-    elif getattr(args, "pad", False):
+    elif sim.pad:
         from carrt.joystick import PygameJoystick
 
         joystick = PygameJoystick(config.joystick)
@@ -135,35 +170,34 @@ def open_sim_rig(
         camera=camera,
         link=link,
         joystick=joystick,
-        describe=f"simulator, layout {args.layout} seed {args.track_seed}, {where}",
+        describe=f"simulator, layout {sim.layout} seed {sim.track_seed}, {where}",
         collisions=tracker.tick,
         follows_mode=[x for x in (pilot, tracker) if x is not None],
         watches_loop=[joystick] if hasattr(joystick, "status_source") else [],
-        finish=lambda summary: _finish(args, world, tracker, summary),
+        finish=lambda summary: _finish(sim, world, tracker, summary),
     )
 
 
-def _finish(args: argparse.Namespace, world: Any, tracker: Tracker, summary: Any) -> None:
+def _finish(sim: SimRigConfig, world: Any, tracker: Tracker, summary: Any) -> None:
     """Print the paper's simulation metrics for this run; save them with a plot under --out."""
     from carrt.sim import metrics
     from carrt.sim.runs import save_run
 
     del summary
     result = metrics.run_metrics(world.track, tracker.recorder)
-    on_metrics = getattr(args, "on_metrics", None)  # `carrt eval` collects, it does not print
-    if on_metrics is not None:
-        on_metrics(result, tracker.recorder)
+    if sim.on_metrics is not None:
+        sim.on_metrics(result, tracker.recorder)
     else:
         print(metrics.format_metrics(result))
-    label = f"{args.layout}-s{args.track_seed}"
-    if getattr(args, "out", None):
-        out = Path(args.out)
+    label = f"{sim.layout}-s{sim.track_seed}"
+    if sim.out:
+        out = Path(sim.out)
         path = save_run(out, world.track, tracker.recorder, result, label)
         (out / "sim_metrics.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
         print(f"run saved: {path} (and its .png trajectory plot)")
-    if args.plot:
+    if sim.plot:
         a = tracker.recorder.arrays()
         metrics.plot_trajectory(
-            world.track, a["x"], a["y"], a["collision"], args.plot, title=label, speeds=a["speed"]
+            world.track, a["x"], a["y"], a["collision"], sim.plot, title=label, speeds=a["speed"]
         )
-        print(f"trajectory plot: {args.plot}")
+        print(f"trajectory plot: {sim.plot}")
