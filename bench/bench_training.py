@@ -39,7 +39,7 @@ def record_episodes(root: Path) -> Path:
 def _stage(name, cfg, policy, world_model, windows, free, norm):
     from training.imitation import train_imitation
     from training.refine import train_refine
-    from training.world_training import train_world_model
+    from training.world_model_stage import train_world_model
 
     if name == "imitation":
         return train_imitation(cfg, policy, free)

@@ -89,7 +89,7 @@ QUICK = dict(
 
 
 # ------------------------------------------------------------------------------- plumbing
-class Step:
+class StudyStep:
     """Runs one command with its output in a log file; a failed command stops the study.
     Counts finished steps against the planned number and prints an ETA as it goes."""
 
@@ -154,7 +154,7 @@ def top_up(pool: Path, frames: int) -> list[Path]:
 
 
 # ------------------------------------------------------------------------------- the steps
-def demonstrations(cfg: StudyConfig, step: Step, sigma: float, tracks: str, tag: str) -> Path:
+def demonstrations(cfg: StudyConfig, step: StudyStep, sigma: float, tracks: str, tag: str) -> Path:
     data = Path(cfg.out) / "data" / f"{tag}-noise{sigma:g}"
     step(f"{tag}-noise{sigma:g}", py("-m", "training.sim_data", "demos", "--out", str(data),
          "--tracks", tracks, "--layouts", cfg.layout, "--episodes", str(cfg.expert_episodes),
@@ -162,7 +162,7 @@ def demonstrations(cfg: StudyConfig, step: Step, sigma: float, tracks: str, tag:
     return data
 
 
-def evaluate(cfg: StudyConfig, step: Step, name: str, run: Path) -> dict:
+def evaluate(cfg: StudyConfig, step: StudyStep, name: str, run: Path) -> dict:
     """`carrt eval` of the run's policy on the held-out placements (one simulator seed)."""
     result = run / "eval.json"
     step(f"eval-{name}", py("-m", "carrt", "eval", "--model", str(run / "policy.onnx"),
@@ -172,7 +172,9 @@ def evaluate(cfg: StudyConfig, step: Step, name: str, run: Path) -> dict:
     return json.loads(result.read_text())
 
 
-def chain(cfg: StudyConfig, step: Step, sigma: float, seed: int, iterations: int) -> list[dict]:
+def chain(
+    cfg: StudyConfig, step: StudyStep, sigma: float, seed: int, iterations: int
+) -> list[dict]:
     """IL → DIRL 1 (and -unc at σ = 0) → … → IL at equal frames, for one noise and one seed."""
     tag = f"noise{sigma:g}-seed{seed}"
     runs = Path(cfg.out) / "runs" / tag
@@ -276,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
     started = time.monotonic()
-    step = Step(cfg, planned_steps(cfg))
+    step = StudyStep(cfg, planned_steps(cfg))
     print(f"dirl_sim: profile {cfg.profile}, seeds {list(cfg.seeds)}, {step.planned} steps, "
           f"out {out}", flush=True)  # fmt: skip
     for sigma in cfg.demo_noise:

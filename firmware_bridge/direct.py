@@ -14,9 +14,9 @@ import secrets
 from typing import Any
 
 from firmware_bridge import messages as m
+from firmware_bridge.drivetrain import Plant
 from firmware_bridge.link import SEND_PERIOD_S, BoardLink, HandshakeTimeout
 from firmware_bridge.native import FirmwareCore
-from firmware_bridge.plant import Plant
 
 
 class _CoreWire:
@@ -32,7 +32,7 @@ class _CoreWire:
         # must not wait for simulated time that only passes while the loop sleeps.
         out = core.take_output()
         if out:
-            self.link._dispatch_bytes(out)
+            self.link.receive(out)
         return len(data)
 
     def close(self) -> None:
@@ -85,7 +85,7 @@ class DirectBoardLink(BoardLink):
         self.core.tick(self.now_ms())
         out = self.core.take_output()
         if out:
-            self._dispatch_bytes(out)
+            self.receive(out)
 
     @property
     def state(self) -> m.State:

@@ -123,6 +123,11 @@ class ReceivePath:
             if self.on_reboot is not None:
                 self.on_reboot(info)
 
+    def receive(self, data: bytes) -> None:
+        """Bytes from the board, from whichever transport carried them (the receiver thread's
+        serial port, or the in-process core of firmware_bridge/direct.py)."""
+        self._dispatch_bytes(data)
+
     def _dispatch_bytes(self, data: bytes) -> None:
         for frame in self._decoder.feed(data):
             self._dispatch_frame(frame)

@@ -26,9 +26,9 @@ import tty
 from collections.abc import Callable
 from pathlib import Path
 
+from firmware_bridge.drivetrain import Plant, WheelPlant
 from firmware_bridge.messages import Reason, State
 from firmware_bridge.native import FirmwareBuildError, FirmwareCore
-from firmware_bridge.plant import Plant, WheelPlant
 
 TICK_S = 0.001  # the core is ticked at about 1 kHz, like an Arduino loop()
 

@@ -77,7 +77,7 @@ def test_check_without_a_board_is_one_line_and_exit_2(tmp_path):
 
 
 def test_check_flags_an_encoder_that_does_not_tick():
-    from firmware_bridge.plant import WheelPlant
+    from firmware_bridge.drivetrain import WheelPlant
 
     with VirtualBoard(WheelPlant(blocked=True)) as board:
         result = carrt("check", "--port", board.port, "--spin-wheels", "--pings", "5")

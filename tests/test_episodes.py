@@ -23,7 +23,7 @@ from carrt.episodes import (
 from carrt.episodes import cli as episodes_cli
 from carrt.episodes import format as fmt
 from carrt.episodes import writer as writer_mod
-from carrt.episodes.inspect import render_contact_sheet
+from carrt.episodes.contact_sheet import render_contact_sheet
 from carrt.episodes.summary import summarize
 from carrt.episodes.video import render_video
 from carrt.errors import UserError

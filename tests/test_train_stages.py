@@ -43,7 +43,7 @@ from training.trainer import (  # noqa: E402
     param_digest,
     run_stage,
 )
-from training.world_training import Targets, train_world_model  # noqa: E402
+from training.world_model_stage import Targets, train_world_model  # noqa: E402
 
 
 @pytest.fixture(autouse=True)

@@ -41,7 +41,7 @@ from carrt.policy import file_sha256
 from training import checkpoint as ck
 from training.evaluate import auroc, spearman
 from training.refine import imagine, sequence_objective, uncertainty_weight
-from training.world_training import Targets
+from training.world_model_stage import Targets
 
 TARGETS = {"collision_auroc": 0.85, "rank_correlation": 0.5}  # issue 14's bar for trusting it
 

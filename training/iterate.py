@@ -114,7 +114,7 @@ def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
     from training.imitation import train_imitation
     from training.models import PolicyNet, WorldModel
     from training.refine import train_refine
-    from training.world_training import collision_class_weight, train_world_model
+    from training.world_model_stage import collision_class_weight, train_world_model
 
     dist = dist or Dist()
     cfg.validate()
@@ -248,7 +248,7 @@ def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
         out / "world_model.pt",
         **{**final, "policy": policy.state_dict(), "world_model": world_model.state_dict()},
     )
-    from training.report import finish_run
+    from training.run_report import finish_run
 
     summary.update(
         finish_run(

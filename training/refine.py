@@ -38,7 +38,7 @@ from training.data import take
 from training.losses import dirichlet_probability
 from training.models import sample_actions
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
-from training.world_training import Targets
+from training.world_model_stage import Targets
 
 if TYPE_CHECKING:
     from training.config import IterateConfig

@@ -8,7 +8,7 @@ import json
 from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import UserError
 
-# carrt.episodes.inspect imports OpenCV, which every `carrt` command would pay for at start-up
+# carrt.episodes.contact_sheet imports OpenCV, which every `carrt` command would pay for at start-up
 # if it were imported here: the CLI builds all parsers on every run.
 
 
@@ -95,7 +95,7 @@ def run_show(args: argparse.Namespace) -> int:
 
 
 def run_video(args: argparse.Namespace) -> int:
-    from carrt.episodes.inspect import render_contact_sheet
+    from carrt.episodes.contact_sheet import render_contact_sheet
     from carrt.episodes.video import render_video
 
     episodes = [read_episode(path) for path in args.episode]

@@ -12,7 +12,7 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 
-from firmware_bridge.plant import pulse_to_unit
+from firmware_bridge.drivetrain import pulse_to_unit
 
 
 @dataclass(frozen=True)
