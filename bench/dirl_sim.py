@@ -42,6 +42,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.dirl_table import plot, table
+from carrt.errors import UserError
+from carrt.settings import apply_sets
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -252,23 +254,10 @@ def parse(argv: list[str] | None) -> StudyConfig:
                    help="any StudyConfig field; tuples comma-separated (seeds=0,1,2)")  # fmt: skip
     a = p.parse_args(argv)
     cfg = StudyConfig(**(QUICK if a.quick else {}))
-    fields = {f.name: f for f in dataclasses.fields(StudyConfig)}
-    for item in a.set:
-        name, _, text = item.partition("=")
-        if name not in fields:
-            p.error(f"--set {name}: unknown field (see StudyConfig in bench/dirl_sim.py)")
-        current = getattr(cfg, name)
-        try:
-            if isinstance(current, tuple):
-                kind = float if name == "demo_noise" else int
-                value = tuple(kind(v) for v in text.split(",") if v.strip())
-            elif isinstance(current, bool):  # bool("false") is True: spell it out
-                value = {"true": True, "1": True, "false": False, "0": False}[text.lower()]
-            else:
-                value = type(current)(text)
-        except (ValueError, KeyError):
-            p.error(f"--set {item}: not a valid value for {name}")
-        cfg = dataclasses.replace(cfg, **{name: value})
+    try:
+        cfg = apply_sets(cfg, a.set, "StudyConfig in bench/dirl_sim.py")
+    except UserError as exc:
+        p.error(str(exc))
     return cfg
 
 

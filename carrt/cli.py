@@ -18,7 +18,6 @@ import sys
 from carrt import __version__
 from carrt.deps import missing_package_message
 from carrt.errors import EXIT_USAGE, UserError
-from carrt.model_contract import ContractError
 from firmware_bridge.link import LinkError
 from firmware_bridge.native import FirmwareBuildError
 
@@ -119,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     _setup_logging(args)
     try:
         return args.func(args)
-    except (UserError, LinkError, ContractError, FirmwareBuildError) as exc:
+    except (UserError, LinkError, FirmwareBuildError) as exc:  # ContractError is a UserError
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"carrt {args.command}: error: {message}", file=sys.stderr)
         return EXIT_USAGE

@@ -17,6 +17,8 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+from carrt.errors import UserError
+
 SCHEMA = "carrt.policy/1"
 
 INPUT_IMAGE = "image"
@@ -47,8 +49,9 @@ REQUIRED_KEYS = {
 }
 
 
-class ContractError(ValueError):
-    """The model does not meet the contract; the message names what is wrong."""
+class ContractError(UserError, ValueError):
+    """The model does not meet the contract; the message names what is wrong (a UserError:
+    one line, exit 2)."""
 
 
 def _floats(text: str, key: str) -> tuple[float, ...]:

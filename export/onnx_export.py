@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import io
 import os
-import subprocess
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +24,7 @@ from carrt import model_contract as mc
 from carrt.errors import UserError
 from carrt.interfaces import CONTROL_PERIOD_S
 from carrt.policy import file_sha256
+from carrt.version import code_version
 from export.graph import (
     OPSET,
     ExportRefused,
@@ -103,23 +103,6 @@ def load_checkpoint_policy(path: str | os.PathLike[str]):
 
 
 # ----------------------------------------------------------------------------- metadata
-def code_version() -> str:
-    """carrt's version plus `git describe` of the source tree when there is one."""
-    version = carrt.__version__
-    root = Path(carrt.__file__).resolve().parent.parent
-    try:
-        described = subprocess.run(
-            ["git", "-C", str(root), "describe", "--always", "--dirty", "--tags"],
-            capture_output=True,
-            text=True,
-            timeout=5,
-            check=True,
-        ).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return version
-    return f"{version}+g{described}" if described else version
-
-
 def build_metadata(ckpt: dict, horizon: int, exporter: str) -> dict[str, str]:
     digest = str(ckpt.get("data_digest") or "")
     if not digest:

@@ -9,15 +9,14 @@ previous checkpoint intact, never a torn file that the resume would choke on.
 
 from __future__ import annotations
 
-import functools
 import os
-import subprocess
 from pathlib import Path
 from typing import Any
 
 import torch
 
-import carrt
+from carrt.errors import UserError
+from carrt.version import code_version  # noqa: F401 - checkpoints carry it
 
 # /2: the policy's throttle head is tanh over [-1, 1] (it can brake) and the cpu profile's
 # backbone is 16 wide. A /1 policy would load into /2 code and silently drive differently
@@ -40,32 +39,9 @@ REQUIRED = (
 )
 
 
-class CheckpointError(ValueError):
-    """The file is not a carrt checkpoint, or lacks a field; the message says which."""
-
-
-@functools.lru_cache(maxsize=1)
-def code_version() -> str:
-    """carrt's version, plus the git commit when the code runs from a checkout.
-
-    The commit is what tells two checkpoints from the same release apart; outside a checkout
-    (an installed wheel) the version alone is all there is.
-    """
-    version = carrt.__version__
-    try:
-        rev = subprocess.run(
-            ["git", "rev-parse", "--short=12", "HEAD"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=5,
-            check=False,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return version
-    if rev.returncode == 0 and rev.stdout.strip():
-        return f"{version}+g{rev.stdout.strip()}"
-    return version
+class CheckpointError(UserError, ValueError):
+    """The file is not a carrt checkpoint, or lacks a field; the message says which (a
+    UserError like every bad input: one line, exit 2)."""
 
 
 def save_checkpoint(path: str | os.PathLike, **fields: Any) -> None:

@@ -8,10 +8,10 @@ sizes (PRESETS); `--set field=value` overrides any field.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 from carrt.errors import UserError
+from carrt.settings import apply_sets
 from training.profiles import PROFILES, Profile, get_profile
 
 
@@ -123,37 +123,14 @@ PRESETS: dict[str, dict] = {
     "paper": dict(eval_every=1000, augment=True),
 }  # fmt: skip
 
-SETTABLE = [f.name for f in dataclasses.fields(IterateConfig) if f.name not in ("episodes", "out")]
-
-
-def _parse_value(name: str, text: str, current):
-    kind = {f.name: f.type for f in dataclasses.fields(IterateConfig)}[name]
-    try:
-        if "bool" in kind:
-            low = text.strip().lower()
-            if low not in ("1", "0", "true", "false", "yes", "no", "on", "off"):
-                raise ValueError(text)
-            return low in ("1", "true", "yes", "on")
-        if "None" in kind and text.strip().lower() in ("", "none"):
-            return None
-        if kind.startswith("int"):
-            return int(text)
-        if kind.startswith("float"):
-            return float(text)
-        return text
-    except ValueError:
-        raise UsageError(f"--set {name}={text}: not a valid {kind}") from None
-
 
 def apply_set(cfg: IterateConfig, items: list[str]) -> IterateConfig:
-    for item in items:
-        name, eq, text = item.partition("=")
-        name = name.strip()
-        if not eq or not name:
-            raise UsageError(f"--set {item!r}: expected field=value")
-        if name not in SETTABLE:
-            raise UsageError(
-                f"--set {name}: unknown field (see IterateConfig in training/config.py)"
-            )
-        cfg = dataclasses.replace(cfg, **{name: _parse_value(name, text, getattr(cfg, name))})
-    return cfg
+    """`--set field=value` (carrt/settings.py: the parser the study shares); errors are
+    UsageErrors (one line, exit 2)."""
+    try:
+        return apply_sets(cfg, items, "IterateConfig in training/config.py", frozen=FROZEN)
+    except UserError as exc:
+        raise UsageError(str(exc)) from None
+
+
+FROZEN = ("episodes", "out")  # given as --episodes and --out, not --set
