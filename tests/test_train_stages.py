@@ -27,18 +27,17 @@ from training.data import (  # noqa: E402
 )
 from training.evaluate import auroc, spearman  # noqa: E402
 from training.imitation import imitation_loss, train_imitation  # noqa: E402
-from training.imitation import spec_for as imitation_spec  # noqa: E402
 from training.models import PolicyNet, WorldModel  # noqa: E402
 from training.refine import (  # noqa: E402
     anchor_penalty,
     held_out_objective,
-    imagine,
     train_refine,
 )
 from training.trainer import (  # noqa: E402
     Budget,
     Interrupted,
     RunContext,
+    StageSpec,
     StopRequested,
     param_digest,
     run_stage,
@@ -253,7 +252,7 @@ def test_refinement_gradient_reaches_the_actions_through_the_frozen_world_model(
     world_model.freeze()
     batch = torch.utils.data.default_collate([windows[i] for i in range(4)])
     actions = batch["actions"].clone().requires_grad_(True)
-    imagined = imagine(world_model, Targets(norm), batch["image"], batch["speed"], actions, 10.0)
+    imagined = world_model.imagine(batch["image"], batch["speed"], actions, 10.0)
     sum(v.sum() for v in imagined.values()).backward()
     assert actions.grad is not None and actions.grad.abs().sum() > 0
     assert all(p.grad is None for p in world_model.parameters())
@@ -311,7 +310,7 @@ def test_ctrl_c_finishes_the_step_then_checkpoints(data, tmp_path):
             signal.raise_signal(signal.SIGINT)  # arrives mid-step
         return imitation_loss(model, batch)
 
-    spec = imitation_spec(tiny(imitation_steps=10, imitation_batch_size=4, ckpt_every=0))
+    spec = StageSpec.of(tiny(imitation_steps=10, imitation_batch_size=4, ckpt_every=0), "imitation")
     ctx = RunContext(ckpt_dir=tmp_path, common=common)
     fields = lambda: {"policy": policy.state_dict(), "world_model": None}  # noqa: E731
     with pytest.raises(Interrupted):

@@ -40,8 +40,7 @@ import torch
 from carrt.policy import file_sha256
 from training import checkpoint as ck
 from training.evaluate import auroc, spearman
-from training.refine import imagine, sequence_objective, uncertainty_weight
-from training.world_model_stage import Targets
+from training.refine import sequence_objective, uncertainty_weight
 
 TARGETS = {"collision_auroc": 0.85, "rank_correlation": 0.5}  # issue 14's bar for trusting it
 
@@ -88,8 +87,8 @@ def true_objective(data: dict, w_speed: float, w_collision: float) -> np.ndarray
 def score(world_model, norm, data: dict, cfg) -> dict:
     """The three numbers (and their parts) for one world model on one counterfactual set; cfg:
     the refinement weights (an IterateConfig, or its fields), -unc's zero included."""
+    del norm  # the world model carries its own normalisation (WorldModel.imagine)
     world_model.eval()
-    targets = Targets(norm)
     n, k, h, _ = data["actions"].shape
     if h != world_model.horizon:
         raise SystemExit(
@@ -101,7 +100,7 @@ def score(world_model, norm, data: dict, cfg) -> dict:
         image = torch.from_numpy(data["image"][i]).expand(k, *data["image"].shape[1:])
         speed = torch.full((k, 1), float(data["speed"][i]))
         actions = torch.from_numpy(data["actions"][i])
-        out = imagine(world_model, targets, image, speed, actions, cfg.uncertainty_clip)
+        out = world_model.imagine(image, speed, actions, cfg.uncertainty_clip)
         imagined_speed[i] = out["speed"].numpy()
         risk[i] = out["p_collision"].max(dim=1).values.numpy()
         objective[i] = sequence_objective(out, *weights).numpy()

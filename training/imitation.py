@@ -54,21 +54,6 @@ def imitation_loss(policy: nn.Module, batch: dict) -> tuple[torch.Tensor, dict]:
     return loss, {"l1_steering": steer.detach(), "l1_throttle": throttle.detach()}
 
 
-def spec_for(cfg: IterateConfig) -> StageSpec:
-    return StageSpec(
-        name="imitation",
-        steps=cfg.imitation_steps,
-        batch_size=cfg.imitation_batch_size,
-        lr=cfg.imitation_lr,
-        final_lr_fraction=cfg.imitation_lr_final,
-        grad_clip=cfg.grad_clip,
-        ckpt_every=cfg.ckpt_every,
-        log_every=cfg.log_every,
-        seed=cfg.seed + 1,
-        eval_every=cfg.eval_every,
-    )
-
-
 def train_imitation(
     cfg: IterateConfig,
     policy: nn.Module,
@@ -100,7 +85,7 @@ def train_imitation(
         val_fn = lambda: {"loss": held_out_l1(policy, val_dataset, ctx.dist.device)}  # noqa: E731
 
     return run_stage(
-        spec_for(cfg),
+        StageSpec.of(cfg, "imitation"),
         ctx,
         dataset=dataset,
         trainable=policy,

@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from carrt.model_contract import ACTION_HIGH, ACTION_LOW
-from training.losses import NIG, dirichlet_uncertainty, nig_uncertainty
+from training.losses import NIG, dirichlet_probability, dirichlet_uncertainty, nig_uncertainty
 from training.profiles import Profile
 
 if TYPE_CHECKING:
@@ -334,6 +334,25 @@ class WorldModel(_Normalised):
             u_speed.squeeze(-1),
             dirichlet_uncertainty(pred.collision),
         )
+
+    def imagine(
+        self, image: Tensor, speed: Tensor, actions: Tensor, uncertainty_clip: float
+    ) -> dict[str, Tensor]:
+        """What this world model expects an action sequence to do, as refinement scores it:
+        (N, H) speed in m/s, p(collision) and the three uncertainties, each capped at
+        `uncertainty_clip` (u explodes as α → 1; the cap is per pixel before the mean, so one
+        exploding pixel cannot dominate). Gradients flow to `actions` (DreamerV3: the world
+        model owns imagination; refinement and the counterfactual check only call it)."""
+        pred = self(image, speed, actions)
+        clip = float(uncertainty_clip)
+        u_image, u_speed, u_coll = self.uncertainties(pred, clip=clip)
+        return {
+            "speed": self.denormalise_speed(pred.speed.gamma[..., 0]),
+            "p_collision": dirichlet_probability(pred.collision)[..., 1],
+            "u_image": u_image.clamp(max=clip),
+            "u_speed": u_speed.clamp(max=clip),
+            "u_collision": u_coll.clamp(max=clip),
+        }
 
     def freeze(self) -> None:
         """For refinement: eval() (BatchNorm statistics frozen), no parameter gradients, and

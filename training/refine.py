@@ -35,7 +35,6 @@ import torch
 from torch import nn
 
 from training.data import take
-from training.losses import dirichlet_probability
 from training.models import sample_actions
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 from training.world_model_stage import Targets
@@ -63,23 +62,6 @@ def anchor_penalty(mu: torch.Tensor, mu_start: torch.Tensor) -> torch.Tensor:
     return (mu - mu_start).pow(2).sum(dim=-1).sum(dim=1).mean()
 
 
-def imagine(
-    world_model: nn.Module, targets: Targets, image, speed, actions, uncertainty_clip: float
-) -> dict[str, torch.Tensor]:
-    """The world model's view of an action sequence: (N, H) speed, p(collision), uncertainties."""
-    pred = world_model(image, speed, actions)
-    clip = float(uncertainty_clip)
-    # clip= caps u_image per pixel before the mean, so one exploding pixel cannot dominate.
-    u_image, u_speed, u_coll = world_model.uncertainties(pred, clip=clip)
-    return {
-        "speed": targets.speeds_to_mps(pred.speed.gamma[..., 0]),
-        "p_collision": dirichlet_probability(pred.collision)[..., 1],
-        "u_image": u_image.clamp(max=clip),
-        "u_speed": u_speed.clamp(max=clip),
-        "u_collision": u_coll.clamp(max=clip),
-    }
-
-
 def sequence_objective(
     imagined: dict[str, torch.Tensor], w_speed: float, w_collision: float, w_uncertainty: float
 ) -> torch.Tensor:
@@ -102,23 +84,6 @@ def refine_objective(
 def noise(shape, seed: int, step: int, rank: int, device) -> torch.Tensor:
     gen = torch.Generator().manual_seed((seed * 1_000_003 + step) * 1009 + rank)
     return torch.randn(shape, generator=gen).to(device)
-
-
-def spec_for(cfg: IterateConfig) -> StageSpec:
-    return StageSpec(
-        name="refine",
-        steps=cfg.refine_steps,
-        batch_size=cfg.refine_batch_size,
-        lr=cfg.refine_lr,
-        grad_clip=cfg.grad_clip,
-        ckpt_every=cfg.ckpt_every,
-        log_every=cfg.log_every,
-        seed=cfg.seed + 3,
-        eval_every=cfg.eval_every,
-        # The policy is refined as it runs on the car: eval-mode BatchNorm with the statistics
-        # of real frames, not those of each small batch of start frames.
-        train_mode=False,
-    )
 
 
 def uncertainty_weight(cfg: IterateConfig) -> float:
@@ -153,8 +118,8 @@ def train_refine(
     def loss_fn(model: nn.Module, batch: dict, step: int):
         eps = noise((len(batch["speed"]), horizon, 2), cfg.seed, step, ctx.dist.rank, device)
         actions, mu = model(batch["image"], batch["speed"], eps)
-        imagined = imagine(
-            world_model, targets, batch["image"], batch["speed"], actions, cfg.uncertainty_clip
+        imagined = world_model.imagine(
+            batch["image"], batch["speed"], actions, cfg.uncertainty_clip
         )
         loss, metrics = refine_objective(imagined, *weights)
         if start is not None:
@@ -172,7 +137,7 @@ def train_refine(
             return held_out_objective(cfg, policy, world_model, targets, val_dataset, device)
 
     return run_stage(
-        spec_for(cfg),
+        StageSpec.of(cfg, "refine"),
         ctx,
         dataset=dataset,
         trainable=policy,
@@ -203,7 +168,7 @@ def held_out_objective(
         batch = take(dataset, range(start, min(n, start + batch_size)))
         image, speed = batch["image"].to(device), batch["speed"].to(device)
         mu, _sigma = policy(image, speed)
-        imagined = imagine(world_model, targets, image, speed, mu, cfg.uncertainty_clip)
+        imagined = world_model.imagine(image, speed, mu, cfg.uncertainty_clip)
         loss, metrics = refine_objective(imagined, *weights)
         for k, v in {"loss": loss, **metrics}.items():
             sums[k] = sums.get(k, 0.0) + float(v)

@@ -164,6 +164,9 @@ class RunContext:
         save_checkpoint(path, **{**self.common, "stage": stage, "step": step, **fields})
 
 
+STAGE_SEED_OFFSETS = {"imitation": 1, "world_model": 2, "refine": 3}
+
+
 @dataclass
 class StageSpec:
     name: str  # "imitation" | "world_model" | "refine"
@@ -177,6 +180,26 @@ class StageSpec:
     eval_every: int = 0  # steps between held-out evaluations (0: never)
     train_mode: bool = True  # False: the trained module stays in eval() (BatchNorm frozen)
     final_lr_fraction: float = 1.0  # cosine decay to lr·this at the last step (1: constant)
+
+    @classmethod
+    def of(cls, cfg: Any, stage: str) -> StageSpec:
+        """A stage's spec from the one config (`<stage>_steps`, `_batch_size`, `_lr`, ...).
+        Each stage draws from its own seed; refinement keeps the policy in eval mode, as it
+        runs on the car (BatchNorm with the statistics of real frames, not of each small batch
+        of start frames); imitation decays its learning rate on a cosine."""
+        return cls(
+            name=stage,
+            steps=getattr(cfg, f"{stage}_steps"),
+            batch_size=getattr(cfg, f"{stage}_batch_size"),
+            lr=getattr(cfg, f"{stage}_lr"),
+            grad_clip=cfg.grad_clip,
+            ckpt_every=cfg.ckpt_every,
+            log_every=cfg.log_every,
+            seed=cfg.seed + STAGE_SEED_OFFSETS[stage],
+            eval_every=cfg.eval_every,
+            train_mode=stage != "refine",
+            final_lr_fraction=cfg.imitation_lr_final if stage == "imitation" else 1.0,
+        )
 
     def lr_at(self, step: int) -> float:
         """The learning rate of optimizer step `step` (0-based): a function of the step alone,

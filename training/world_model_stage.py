@@ -91,20 +91,6 @@ def world_model_loss(
     return loss, metrics
 
 
-def spec_for(cfg: IterateConfig) -> StageSpec:
-    return StageSpec(
-        name="world_model",
-        steps=cfg.world_model_steps,
-        batch_size=cfg.world_model_batch_size,
-        lr=cfg.world_model_lr,
-        grad_clip=cfg.grad_clip,
-        ckpt_every=cfg.ckpt_every,
-        log_every=cfg.log_every,
-        seed=cfg.seed + 2,
-        eval_every=cfg.eval_every,
-    )
-
-
 def train_world_model(
     cfg: IterateConfig,
     world_model: nn.Module,
@@ -147,7 +133,7 @@ def train_world_model(
         }
 
     return run_stage(
-        spec_for(cfg),
+        StageSpec.of(cfg, "world_model"),
         ctx,
         dataset=dataset,
         trainable=world_model,
