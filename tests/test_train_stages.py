@@ -383,3 +383,29 @@ def test_imitation_lr_follows_a_cosine_to_its_final_fraction():
     constant = StageSpec("world_model", steps=101, batch_size=1, lr=5e-4, grad_clip=1.0,
                          ckpt_every=0, log_every=1, seed=0)  # fmt: skip
     assert constant.lr_at(100) == 5e-4
+
+
+def test_a_checkpoint_carries_its_profiles_sizes(tmp_path):
+    """Issue 16: a checkpoint names its profile AND keeps its fields, so changing a profile
+    never breaks an old checkpoint (load_policy builds from the stored fields)."""
+    import dataclasses
+
+    from training import checkpoint as ck
+    from training.data import Normalisation
+    from training.profiles import get_profile
+
+    sizes = dataclasses.replace(get_profile("tiny"), width=4)  # not any profile's sizes
+    policy = PolicyNet(sizes)
+    norm = Normalisation((0.5,) * 3, (0.25,) * 3, 1.0, 0.5)
+    policy.set_normalisation(norm)
+    path = tmp_path / "p.pt"
+    ck.save_checkpoint(
+        path, config={}, profile="tiny", profile_fields=dataclasses.asdict(sizes),
+        stage="imitation", step=1, policy=policy.state_dict(), world_model=None, optimizer=None,
+        normalisation=norm.to_dict(), data_digest="d", iteration=0,
+        code_version=ck.code_version(), episodes=[],
+    )  # fmt: skip
+    assert get_profile("tiny").width != 4, "the stored sizes must differ from the named ones"
+    loaded, _ = ck.load_policy(path)  # built from the tiny profile, this would not load
+    for a, b in zip(loaded.state_dict().values(), policy.state_dict().values(), strict=True):
+        assert torch.equal(a, b)

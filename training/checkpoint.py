@@ -114,14 +114,25 @@ def resumable(ckpt_dir: Path, targets: dict[str, int], *, profile: str, digest: 
     return found
 
 
+def profile_of(ckpt: dict):
+    """The model sizes a checkpoint was trained with: its own copy of the profile's fields
+    (`profile_fields`, written since the profiles could change under old files), else the
+    profile of that name (older checkpoints)."""
+    from training.profiles import Profile, get_profile
+
+    fields = ckpt.get("profile_fields")
+    if fields:
+        return Profile(**fields)
+    return get_profile(ckpt["profile"])
+
+
 def load_policy(path: str | os.PathLike):
     """The checkpoint's PolicyNet (with its normalisation) in eval mode, and the checkpoint."""
     from training.data import Normalisation
     from training.models import PolicyNet
-    from training.profiles import get_profile
 
     ckpt = load_checkpoint(path)
-    policy = PolicyNet(get_profile(ckpt["profile"]))
+    policy = PolicyNet(profile_of(ckpt))
     policy.set_normalisation(Normalisation.from_dict(ckpt["normalisation"]))
     policy.load_state_dict(ckpt["policy"])
     policy.eval()
@@ -132,12 +143,11 @@ def load_world_model(path: str | os.PathLike):
     """The checkpoint's WorldModel in eval mode, and the checkpoint (for evaluation, figures)."""
     from training.data import Normalisation
     from training.models import WorldModel
-    from training.profiles import get_profile
 
     ckpt = load_checkpoint(path)
     if ckpt["world_model"] is None:
         raise CheckpointError(f"checkpoint {path}: holds no world model")
-    model = WorldModel(get_profile(ckpt["profile"]))
+    model = WorldModel(profile_of(ckpt))
     model.set_normalisation(Normalisation.from_dict(ckpt["normalisation"]))
     model.load_state_dict(ckpt["world_model"])
     model.eval()

@@ -179,6 +179,7 @@ def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
     common = {
         "config": dataclasses.asdict(cfg),
         "profile": cfg.profile,
+        "profile_fields": dataclasses.asdict(profile),  # the sizes, should the profile change
         "normalisation": norm.to_dict(),
         "data_digest": digest,
         "iteration": iteration,
