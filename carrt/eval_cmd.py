@@ -14,8 +14,8 @@ import json
 import math
 from pathlib import Path
 
+from carrt import layouts
 from carrt.errors import UserError
-from carrt.sim import layouts
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:

@@ -21,12 +21,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from carrt import __version__
+from carrt import __version__, layouts
 from carrt import config as car_config
 from carrt.errors import UserError
 from carrt.progress import recording_bar
 from carrt.rig import open_car_rig
-from carrt.sim import layouts
 from firmware_bridge.link import BoardLink, LinkError
 
 LOG = logging.getLogger(__name__)

@@ -225,7 +225,12 @@ def test_ctrl_c_ends_a_drive_cleanly_with_exit_130(tmp_path):
          "--record", "--out", str(tmp_path / "eps"), "--duration", "3000"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
     )  # fmt: skip
-    time.sleep(4.0)
+    seen = []  # wait until the loop runs (a slow start must not race the signal)
+    deadline = time.monotonic() + 60
+    while not any("mode AUTO" in line for line in seen):
+        assert time.monotonic() < deadline and proc.poll() is None, seen
+        seen.append(proc.stdout.readline())
+    time.sleep(0.5)
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err

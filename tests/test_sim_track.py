@@ -197,7 +197,8 @@ def test_start_pose_is_on_the_start_line_heading_along_the_track():
 def test_inserting_a_layout_moves_no_other_layouts_obstacles(monkeypatch):
     """Placements come from each layout's own stream, not its position in the list: the
     held-out evaluation placements must not move when someone adds a layout."""
-    from carrt.sim import layouts, track
+    from carrt import layouts
+    from carrt.sim import track
 
     def where(layout, seed):
         return [(o.x, o.y, o.radius, o.colour) for o in track.build_track(layout, seed).obstacles]

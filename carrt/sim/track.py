@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from carrt.sim.layouts import LAYOUTS
+from carrt.layouts import LAYOUTS
 from carrt.sim.types import Obstacle, Track
 
 TRACK_WIDTH = 0.8

@@ -1,5 +1,6 @@
 """The simulator's obstacle layouts, by name: how many obstacles, and which random stream their
-placements come from. The one place to add a layout (the CLI's choices are read from here).
+placements come from. The one place to add a layout (the CLI's choices are read from here). It
+lives outside carrt/sim/ so the car's CLI can list the names without importing the simulator.
 
 Each layout names its own stream number. Placements used to be seeded from a layout's position
 in the list, so inserting a layout silently moved every later layout's obstacles, the held-out
