@@ -76,6 +76,7 @@ class StudyConfig:
     eval_seconds: float = 60.0  # simulated seconds per held-out placement (a lap is ~7 s)
     threads: int = 2  # torch threads
     jobs: int = 2  # simulator processes
+    report_only: bool = False  # --report: tables from the finished steps, nothing run
 
     def iterate_overrides(self) -> list[str]:
         return [f"threads={self.threads}", "progress=false", "figures=false"]
@@ -91,21 +92,29 @@ QUICK = dict(
 
 
 # ------------------------------------------------------------------------------- plumbing
+class NotRun(Exception):
+    """A step has not run yet and the study only reports (--report): its rows are left out."""
+
+
 class StudyStep:
     """Runs one command with its output in a log file; a failed command stops the study.
-    Counts finished steps against the planned number and prints an ETA as it goes."""
+    Counts finished steps against the planned number and prints an ETA as it goes. With
+    `report_only`, nothing runs: a step that has not finished raises NotRun."""
 
-    def __init__(self, cfg: StudyConfig, planned: int) -> None:
+    def __init__(self, cfg: StudyConfig, planned: int, report_only: bool = False) -> None:
         self.out = Path(cfg.out)
         self.logs = self.out / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
         self.planned, self.done, self.spent = planned, 0, 0.0
+        self.report_only = report_only
 
     def __call__(self, name: str, argv: list[str], marker: Path) -> None:
         """Run unless `marker` exists; touch it when the command succeeded."""
         self.done += 1
         if marker.exists():
             return
+        if self.report_only:
+            raise NotRun(name)
         log = self.logs / f"{name}.log"
         started = time.monotonic()
         with log.open("w") as fh:
@@ -175,14 +184,19 @@ def evaluate(cfg: StudyConfig, step: StudyStep, name: str, run: Path) -> dict:
 
 
 def chain(
-    cfg: StudyConfig, step: StudyStep, sigma: float, seed: int, iterations: int
+    cfg: StudyConfig,
+    step: StudyStep,
+    sigma: float,
+    seed: int,
+    iterations: int,
+    rows: list[dict],
 ) -> list[dict]:
-    """IL → DIRL 1 (and -unc at σ = 0) → … → IL at equal frames, for one noise and one seed."""
+    """IL → DIRL 1 (and -unc at σ = 0) → … → IL at equal frames, for one noise and one seed;
+    each model's row is appended to `rows` as it is evaluated."""
     tag = f"noise{sigma:g}-seed{seed}"
     runs = Path(cfg.out) / "runs" / tag
     expert = Path(cfg.out) / "data" / f"expert-noise{sigma:g}"
     extra = Path(cfg.out) / "data" / f"extra-noise{sigma:g}"
-    rows: list[dict] = []
     common = ["--seed", str(seed), "--set", f"refine_w_anchor={cfg.refine_w_anchor}",
               "--set", f"counterfactual_starts={cfg.counterfactual_starts}",
               "--set", f"counterfactual_tracks={cfg.counterfactual_tracks}",
@@ -250,6 +264,10 @@ def planned_steps(cfg: StudyConfig) -> int:
 def parse(argv: list[str] | None) -> StudyConfig:
     p = argparse.ArgumentParser(prog="python -m bench.dirl_sim", description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="tiny profile, one seed: minutes")
+    p.add_argument(
+        "--report", action="store_true",
+        help="run nothing: write the table and figure from the steps finished so far",
+    )  # fmt: skip
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="any StudyConfig field; tuples comma-separated (seeds=0,1,2)")  # fmt: skip
     a = p.parse_args(argv)
@@ -258,31 +276,40 @@ def parse(argv: list[str] | None) -> StudyConfig:
         cfg = apply_sets(cfg, a.set, "StudyConfig in bench/dirl_sim.py")
     except UserError as exc:
         p.error(str(exc))
-    return cfg
+    return dataclasses.replace(cfg, report_only=a.report)
 
 
 def main(argv: list[str] | None = None) -> int:
     cfg = parse(argv)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
+    if not cfg.report_only:  # a report must not relabel the run it reads
+        (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
     started = time.monotonic()
-    step = StudyStep(cfg, planned_steps(cfg))
+    step = StudyStep(cfg, planned_steps(cfg), report_only=cfg.report_only)
     print(f"dirl_sim: profile {cfg.profile}, seeds {list(cfg.seeds)}, {step.planned} steps, "
           f"out {out}", flush=True)  # fmt: skip
+    rows, missing = [], []
+    chains = [(0.0, seed, cfg.iterations) for seed in cfg.seeds if 0.0 in cfg.demo_noise]
+    chains += [(sigma, seed, cfg.robustness_iterations) for sigma in cfg.demo_noise if sigma
+               for seed in cfg.robustness_seeds]  # fmt: skip
     for sigma in cfg.demo_noise:
-        demonstrations(cfg, step, sigma, cfg.train_tracks, "expert")
-        demonstrations(cfg, step, sigma, cfg.extra_tracks, "extra")
-    rows = []
-    for seed in cfg.seeds if 0.0 in cfg.demo_noise else ():
-        rows += chain(cfg, step, 0.0, seed, cfg.iterations)
-    for sigma in (s for s in cfg.demo_noise if s):
-        for seed in cfg.robustness_seeds:
-            rows += chain(cfg, step, sigma, seed, cfg.robustness_iterations)
+        try:
+            demonstrations(cfg, step, sigma, cfg.train_tracks, "expert")
+            demonstrations(cfg, step, sigma, cfg.extra_tracks, "extra")
+        except NotRun as exc:
+            missing.append(str(exc))
+    for sigma, seed, iterations in chains:
+        try:
+            chain(cfg, step, sigma, seed, iterations, rows)
+        except NotRun as exc:  # --report: this chain stops at its first unfinished step
+            missing.append(str(exc))
     report = table(rows)
-    (out / "results.json").write_text(json.dumps(
-        {"config": dataclasses.asdict(cfg), "rows": rows,
-         "wall_s": time.monotonic() - started}, indent=2) + "\n")  # fmt: skip
+    if missing:
+        report += f"\n\nNot finished yet (--report): {', '.join(missing)}."
+    results = {"config": dataclasses.asdict(cfg), "rows": rows, "complete": not missing,
+               "not_finished": missing, "wall_s": time.monotonic() - started}  # fmt: skip
+    (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     (out / "table.md").write_text(report + "\n")
     plot(rows, out / "completion_vs_frames.png")
     print("\n" + report)

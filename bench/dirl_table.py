@@ -71,7 +71,8 @@ def plot(rows: list[dict], path: Path) -> None:
     ax.set_ylim(-0.02, 1.02)
     ax.set_title("IL and DIRL iterations, mean ± std over seeds")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    if rows:  # a --report before any model finished has nothing to label
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

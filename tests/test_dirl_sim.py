@@ -7,6 +7,8 @@ step with the tiny profile in minutes and is how the pipeline was checked end to
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from bench import dirl_sim, dirl_table
@@ -78,3 +80,14 @@ def test_plot_writes_completion_against_frames(tmp_path):
             _row("DIRL -unc iter 1", 0, [0.1], frames=1500, iteration=1)]  # fmt: skip
     dirl_table.plot(rows, tmp_path / "c.png")
     assert (tmp_path / "c.png").stat().st_size > 5000
+
+
+def test_report_runs_nothing_and_says_what_has_not_finished(tmp_path, capsys):
+    """--report on a study that has not started: no command runs, the table says so."""
+    assert dirl_sim.main(["--quick", "--report", "--set", f"out={tmp_path}"]) == 0
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["complete"] is False and results["rows"] == []
+    assert "expert-noise0" in results["not_finished"]
+    assert "Not finished yet" in (tmp_path / "table.md").read_text()
+    assert not (tmp_path / "config.json").exists(), "a report does not relabel the run"
+    assert not (tmp_path / "data").exists(), "nothing ran"
