@@ -22,7 +22,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 if __package__ in (None, ""):  # run as `python training/iterate.py`: make `training` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -32,6 +34,16 @@ import torch
 from carrt.errors import UserError
 from training import checkpoint as ck
 from training.config import PRESETS, IterateConfig, UsageError, apply_set
+from training.data import (
+    FrameStore,
+    ImitationDataset,
+    Normalisation,
+    WindowDataset,
+    compute_normalisation,
+    data_digest,
+    load_episodes,
+    split_by_placement,
+)
 from training.profiles import PROFILES
 from training.trainer import (
     Budget,
@@ -100,25 +112,60 @@ def _init_profile(init: str) -> str:
 
 
 # ------------------------------------------------------------------------------------- the run
-def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
-    """Train, export and report one iteration; returns a summary (also for non-zero ranks)."""
-    from training.data import (
-        FrameStore,
-        ImitationDataset,
-        WindowDataset,
-        compute_normalisation,
-        data_digest,
-        load_episodes,
-        split_by_placement,
-    )
-    from training.imitation import train_imitation
-    from training.models import PolicyNet, WorldModel
-    from training.refine import train_refine
-    from training.world_model_stage import collision_class_weight, train_world_model
+@dataclass
+class Start:
+    """Where an iteration begins (the paper's Algorithm 1): iteration 1 from scratch, imitation
+    first; a later one (--init) from the previous run's policy and world model, without
+    imitation, keeping the input scaling the policy learned with."""
 
+    norm: Any  # data.Normalisation
+    iteration: int
+    stages: list[str]
+    policy: dict | None = None  # the previous checkpoint's state dicts
+    world_model: dict | None = None
+
+
+def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
+    """One DIRL iteration, as Algorithm 1 reads: data → (imitation) → world model → refinement,
+    then the policy exported and the run reported. Returns a summary (also on non-zero ranks)."""
     dist = dist or Dist()
     cfg.validate()
-    out, profile = Path(cfg.out), cfg.profile_obj
+    episodes, train_eps, val_eps = read_episodes(cfg)
+    start = starting_point(cfg, train_eps)
+    policy, world_model = build_models(cfg, start)
+    digest = data_digest(train_eps)
+    existing = resume_checkpoints(cfg, start, digest, policy, world_model)
+    ctx, common = run_context(cfg, dist, start, digest, train_eps)
+    data = StageData(cfg, train_eps, val_eps)
+    results = {}
+    try:
+        for stage in start.stages:
+            results[stage] = train_stage(
+                stage, cfg, policy, world_model, data, start.norm, ctx, existing.get(stage)
+            )
+    finally:
+        if ctx.writer is not None:
+            ctx.writer.flush()
+    summary = {"iteration": start.iteration, "stages": results, "out": cfg.out}
+    if not dist.is_main:
+        return summary
+    save_final(cfg, common, start, results, policy, world_model)
+    from training.run_report import finish_run
+
+    summary.update(
+        finish_run(
+            cfg, Path(cfg.out), policy=policy, world_model=world_model, norm=start.norm,
+            train_eps=train_eps, val_eps=val_eps, episodes=episodes, digest=digest,
+            results=results, iteration=start.iteration, device=dist.device,
+            writer=ctx.writer, world_size=dist.world_size,
+        )
+    )  # fmt: skip
+    ctx.writer.close()
+    return summary
+
+
+def read_episodes(cfg: IterateConfig) -> tuple[list, list, list]:
+    """(all, train, validation): validation holds out whole placements."""
     missing = [e for e in cfg.episodes if not Path(e).exists()]
     if missing:
         raise UsageError(f"--episodes {missing[0]}: no such directory")
@@ -128,49 +175,60 @@ def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
             f"no episodes with steps under {', '.join(cfg.episodes) or '(none given)'}"
         )
     train_eps, val_eps = split_by_placement(episodes, cfg.val_fraction, cfg.seed)
-    digest = data_digest(train_eps)
+    return episodes, train_eps, val_eps
 
-    init_ckpt = init_wm = None
-    if cfg.init:
-        policy_path, wm_path = _init_paths(cfg.init)
-        try:
-            init_ckpt = ck.load_checkpoint(policy_path)
-            init_wm = ck.load_checkpoint(wm_path) if wm_path.is_file() else None
-        except ck.CheckpointError as exc:
-            raise UsageError(f"--init {cfg.init}: {exc}") from None
-        if init_ckpt["profile"] != cfg.profile:
-            raise UsageError(
-                f"--init {cfg.init} has profile {init_ckpt['profile']}, not {cfg.profile}"
-            )
-        from training.data import Normalisation
 
-        # The refined policy keeps the input scaling it learned with.
-        norm = Normalisation.from_dict(init_ckpt["normalisation"])
-        iteration = int(init_ckpt["iteration"]) + 1
-        stages = ["world_model", "refine"]
-    else:
-        norm = compute_normalisation(train_eps)
+def starting_point(cfg: IterateConfig, train_eps: list) -> Start:
+    if not cfg.init:
         iteration = 1 if cfg.refine_steps > 0 else 0
-        stages = ["imitation", "world_model", "refine"]
+        return Start(compute_normalisation(train_eps), iteration, list(ck.STAGES))
+    policy_path, wm_path = _init_paths(cfg.init)
+    try:
+        init_ckpt = ck.load_checkpoint(policy_path)
+        init_wm = ck.load_checkpoint(wm_path) if wm_path.is_file() else None
+    except ck.CheckpointError as exc:
+        raise UsageError(f"--init {cfg.init}: {exc}") from None
+    if init_ckpt["profile"] != cfg.profile:
+        raise UsageError(f"--init {cfg.init} has profile {init_ckpt['profile']}, not {cfg.profile}")
+    return Start(
+        norm=Normalisation.from_dict(init_ckpt["normalisation"]),
+        iteration=int(init_ckpt["iteration"]) + 1,
+        stages=["world_model", "refine"],
+        policy=init_ckpt["policy"],
+        world_model=init_wm["world_model"] if init_wm is not None else None,
+    )
+
+
+def build_models(cfg: IterateConfig, start: Start):
+    from training.models import PolicyNet, WorldModel
 
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    policy, world_model = PolicyNet(profile), WorldModel(profile)
-    policy.set_normalisation(norm)
-    world_model.set_normalisation(norm)
-    if init_ckpt is not None:
-        policy.load_state_dict(init_ckpt["policy"])
-    if init_wm is not None and init_wm["world_model"] is not None:
-        world_model.load_state_dict(init_wm["world_model"])
+    policy, world_model = PolicyNet(cfg.profile_obj), WorldModel(cfg.profile_obj)
+    policy.set_normalisation(start.norm)
+    world_model.set_normalisation(start.norm)
+    if start.policy is not None:
+        policy.load_state_dict(start.policy)
+    if start.world_model is not None:
+        world_model.load_state_dict(start.world_model)
+    return policy, world_model
 
-    targets = {s: getattr(cfg, f"{s}_steps") for s in stages}
-    existing = ck.resumable(out / "checkpoints", targets, profile=cfg.profile, digest=digest)
-    for stage in stages:  # later stages' checkpoints hold the newer weights: load in order
+
+def resume_checkpoints(cfg: IterateConfig, start: Start, digest: str, policy, world_model):
+    """The stages this run already checkpointed (running the command again resumes)."""
+    targets = {s: getattr(cfg, f"{s}_steps") for s in start.stages}
+    out = Path(cfg.out) / "checkpoints"
+    existing = ck.resumable(out, targets, profile=cfg.profile, digest=digest)
+    for stage in start.stages:  # later stages' checkpoints hold the newer weights: load in order
         if stage in existing:
             _load_weights(existing[stage], policy, world_model)
+    return existing
 
-    writer = None
+
+def run_context(cfg: IterateConfig, dist: Dist, start: Start, digest: str, train_eps: list):
+    """What every stage shares: checkpoint fields, TensorBoard (rank 0), budget, progress."""
+    out, writer = Path(cfg.out), None
     if dist.is_main:
         out.mkdir(parents=True, exist_ok=True)
         from torch.utils.tensorboard import SummaryWriter
@@ -179,67 +237,71 @@ def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
     common = {
         "config": dataclasses.asdict(cfg),
         "profile": cfg.profile,
-        "profile_fields": dataclasses.asdict(profile),  # the sizes, should the profile change
-        "normalisation": norm.to_dict(),
+        "profile_fields": dataclasses.asdict(cfg.profile_obj),  # should the profile change
+        "normalisation": start.norm.to_dict(),
         "data_digest": digest,
-        "iteration": iteration,
+        "iteration": start.iteration,
         "code_version": ck.code_version(),
         "episodes": [ep.name for ep in train_eps],
     }
     ctx = RunContext(
-        dist=dist,
-        ckpt_dir=out / "checkpoints",
-        common=common,
-        writer=writer,
-        budget=Budget(cfg.stop_after or None),
-        progress=cfg.progress,
+        dist=dist, ckpt_dir=out / "checkpoints", common=common, writer=writer,
+        budget=Budget(cfg.stop_after or None), progress=cfg.progress,
         num_workers=cfg.num_workers,
-    )
-    h, size = profile.horizon, profile.predict_size
-    # Every frame decoded once into RAM, shared by the stages' datasets (data.FrameStore).
-    store = FrameStore(train_eps)
-    val_store = FrameStore(val_eps) if val_eps else None
-    windows = WindowDataset(train_eps, h, predict_size=size, store=store)
-    val_windows = WindowDataset(val_eps, h, predict_size=size, store=val_store) if val_eps else None
-    if len(windows) == 0:
-        raise UsageError("no training windows: every training episode has fewer than 2 steps")
-    results = {}
-    try:
-        for stage in stages:
-            resume = existing.get(stage)
-            if stage == "imitation":
-                iw = cfg.intervention_weight
-                free = ImitationDataset(train_eps, h, intervention_weight=iw, store=store)
-                val_free = (
-                    ImitationDataset(val_eps, h, intervention_weight=iw, store=val_store)
-                    if val_eps
-                    else None
-                )
-                if len(free) == 0 and cfg.imitation_steps > 0:
-                    raise UsageError(
-                        "no collision-free MANUAL steps in the training episodes to imitate"
-                    )
-                results[stage] = train_imitation(
-                    cfg, policy, free, ctx, resume=resume, val_dataset=val_free
-                )
-            elif stage == "world_model":
-                weight = cfg.collision_weight or collision_class_weight(train_eps)
-                results[stage] = train_world_model(
-                    cfg, world_model, windows, norm, ctx, collision_weight=weight,
-                    policy=policy, resume=resume, val_dataset=val_windows,
-                )  # fmt: skip
-            else:
-                results[stage] = train_refine(
-                    cfg, policy, world_model, windows, norm, ctx,
-                    resume=resume, val_dataset=val_windows,
-                )  # fmt: skip
-    finally:
-        if writer is not None:
-            writer.flush()
-    summary = {"iteration": iteration, "stages": results, "out": str(out)}
-    if not dist.is_main:
-        return summary
+    )  # fmt: skip
+    return ctx, common
 
+
+class StageData:
+    """The datasets every stage reads, over frames decoded once into RAM (data.FrameStore)."""
+
+    def __init__(self, cfg: IterateConfig, train_eps: list, val_eps: list) -> None:
+        h, size = cfg.profile_obj.horizon, cfg.profile_obj.predict_size
+        self.cfg, self.train_eps, self.val_eps, self.horizon = cfg, train_eps, val_eps, h
+        self.store = FrameStore(train_eps)
+        self.val_store = FrameStore(val_eps) if val_eps else None
+        self.windows = WindowDataset(train_eps, h, predict_size=size, store=self.store)
+        self.val_windows = (
+            WindowDataset(val_eps, h, predict_size=size, store=self.val_store) if val_eps else None
+        )
+        if len(self.windows) == 0:
+            raise UsageError("no training windows: every training episode has fewer than 2 steps")
+
+    def imitation(self):
+        iw, h = self.cfg.intervention_weight, self.horizon
+        free = ImitationDataset(self.train_eps, h, intervention_weight=iw, store=self.store)
+        val = None
+        if self.val_eps:
+            val = ImitationDataset(self.val_eps, h, intervention_weight=iw, store=self.val_store)
+        if len(free) == 0 and self.cfg.imitation_steps > 0:
+            raise UsageError("no collision-free MANUAL steps in the training episodes to imitate")
+        return free, val
+
+
+def train_stage(stage, cfg, policy, world_model, data: StageData, norm, ctx, resume):
+    from training.imitation import train_imitation
+    from training.refine import train_refine
+    from training.world_model_stage import collision_class_weight, train_world_model
+
+    if stage == "imitation":
+        free, val_free = data.imitation()
+        return train_imitation(cfg, policy, free, ctx, resume=resume, val_dataset=val_free)
+    if stage == "world_model":
+        weight = cfg.collision_weight or collision_class_weight(data.train_eps)
+        return train_world_model(
+            cfg, world_model, data.windows, norm, ctx, collision_weight=weight,
+            policy=policy, resume=resume, val_dataset=data.val_windows,
+        )  # fmt: skip
+    return train_refine(
+        cfg, policy, world_model, data.windows, norm, ctx,
+        resume=resume, val_dataset=data.val_windows,
+    )  # fmt: skip
+
+
+def save_final(cfg, common: dict, start: Start, results: dict, policy, world_model) -> None:
+    """policy.pt (what export reads) and world_model.pt (what the next iteration continues)."""
+    out = Path(cfg.out)
+    stages = start.stages
     last = next((s for s in reversed(stages) if results[s].steps > 0), stages[-1])
     final = {**common, "stage": last, "step": results[last].steps, "optimizer": None}
     ck.save_checkpoint(
@@ -249,18 +311,6 @@ def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
         out / "world_model.pt",
         **{**final, "policy": policy.state_dict(), "world_model": world_model.state_dict()},
     )
-    from training.run_report import finish_run
-
-    summary.update(
-        finish_run(
-            cfg, out, policy=policy, world_model=world_model, norm=norm,
-            train_eps=train_eps, val_eps=val_eps, episodes=episodes, digest=digest,
-            results=results, iteration=iteration, device=dist.device, writer=writer,
-            world_size=dist.world_size,
-        )
-    )  # fmt: skip
-    writer.close()
-    return summary
 
 
 def _load_weights(c: dict, policy, world_model) -> None:
