@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from training.augment import augment_images
-from training.data import take
+from training.held_out import held_out
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 
 if TYPE_CHECKING:
@@ -101,24 +101,17 @@ def train_imitation(
 def held_out_l1(
     policy: nn.Module, dataset, device, batch_size: int = 256, limit: int = 512
 ) -> float:
-    """Imitation L1 over (up to `limit`) windows, in eval mode; restores the previous mode.
+    """Imitation L1 over (up to `limit`) windows, in eval mode (training/held_out.py).
 
     Unweighted over the labelled steps (weight > 0), so it reads as an L1 whatever the
     intervention weight; without `weight`, over `action_mask`.
     """
-    was_training = policy.training
-    policy.eval()
-    total, count = 0.0, 0.0
-    n = min(len(dataset), limit)
-    for start in range(0, n, batch_size):
-        batch = {
-            k: v.to(device)
-            for k, v in take(dataset, range(start, min(n, start + batch_size))).items()
-        }
+
+    def measure(batch: dict) -> dict:
         mu, _ = policy(batch["image"], batch["speed"])
         w = batch.get("weight", batch["action_mask"])
         mask = (w > 0).to(mu.dtype).unsqueeze(-1).expand_as(mu)
-        total += float(((mu - batch["expert_actions"]).abs() * mask).sum())
-        count += float(mask.sum())
-    policy.train(was_training)
-    return total / count if count else float("nan")
+        return {"l1": (((mu - batch["expert_actions"]).abs() * mask).sum(), mask.sum())}
+
+    got = held_out([policy], dataset, device, measure, batch_size=batch_size, limit=limit)
+    return got.get("l1", float("nan"))

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
-from training.data import take
+from training.held_out import held_out
 from training.models import sample_actions
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 from training.world_model_stage import Targets
@@ -156,22 +156,17 @@ def train_refine(
 def held_out_objective(
     cfg: IterateConfig, policy, world_model, targets, dataset, device, batch_size=32, limit=256
 ) -> dict:
-    """The refinement objective with ε = 0 (the μ the car would drive) on fixed windows."""
-    was_training = policy.training
-    policy.eval()
-    world_model.eval()
-    sums: dict[str, float] = {}
-    batches = 0
-    n = min(len(dataset), limit)
+    """The refinement objective with ε = 0 (the μ the car would drive) on fixed windows, mean
+    over batches (training/held_out.py)."""
+    del targets  # the world model carries its normalisation (WorldModel.imagine)
     weights = (cfg.refine_w_speed, cfg.refine_w_collision, uncertainty_weight(cfg))
-    for start in range(0, n, batch_size):
-        batch = take(dataset, range(start, min(n, start + batch_size)))
-        image, speed = batch["image"].to(device), batch["speed"].to(device)
-        mu, _sigma = policy(image, speed)
-        imagined = world_model.imagine(image, speed, mu, cfg.uncertainty_clip)
+
+    def measure(batch: dict) -> dict:
+        mu, _sigma = policy(batch["image"], batch["speed"])
+        imagined = world_model.imagine(batch["image"], batch["speed"], mu, cfg.uncertainty_clip)
         loss, metrics = refine_objective(imagined, *weights)
-        for k, v in {"loss": loss, **metrics}.items():
-            sums[k] = sums.get(k, 0.0) + float(v)
-        batches += 1
-    policy.train(was_training)
-    return {k: v / batches for k, v in sums.items()}
+        return {k: (v, 1.0) for k, v in {"loss": loss, **metrics}.items()}
+
+    return held_out(
+        [policy, world_model], dataset, device, measure, batch_size=batch_size, limit=limit
+    )

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from training.data import take
+from training.held_out import held_out
 from training.losses import evidential_classification_loss, evidential_regression_loss
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 
@@ -147,17 +147,10 @@ def train_world_model(
 
 @torch.no_grad()
 def held_out_loss(model, dataset, targets, weights, device, batch_size=32, limit=256) -> dict:
-    was_training = model.training
-    model.eval()
-    sums: dict[str, float] = {}
-    batches = 0
-    n = min(len(dataset), limit)
-    for start in range(0, n, batch_size):
-        items = range(start, min(n, start + batch_size))
-        batch = {k: v.to(device) for k, v in take(dataset, items).items()}
+    """The world model's loss and its parts on fixed windows, mean over batches."""
+
+    def measure(batch: dict) -> dict:
         loss, metrics = world_model_loss(model, batch, targets, **weights)
-        for k, v in {"loss": loss, **metrics}.items():
-            sums[k] = sums.get(k, 0.0) + float(v)
-        batches += 1
-    model.train(was_training)
-    return {k: v / batches for k, v in sums.items()}
+        return {k: (v, 1.0) for k, v in {"loss": loss, **metrics}.items()}
+
+    return held_out([model], dataset, device, measure, batch_size=batch_size, limit=limit)
