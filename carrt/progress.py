@@ -11,7 +11,7 @@ from __future__ import annotations
 import contextlib
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 REFRESH_S = 0.5
@@ -28,10 +28,10 @@ def recording_bar(loop: Any, enabled: bool, stream: Any = None) -> Iterator[None
     stop = threading.Event()
     bar = tqdm(total=None, unit="step", desc="recording", file=stream, leave=False, mininterval=0)
 
-    def update(read: Callable[[], Any] = lambda: loop.live) -> None:
+    def update() -> None:
         shown = 0
         while not stop.wait(REFRESH_S):
-            live, steps = read(), loop.summary.recorded_steps
+            live, steps = loop.live, loop.summary.recorded_steps
             bar.update(steps - shown)
             shown = steps
             bar.set_postfix_str(

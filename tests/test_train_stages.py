@@ -42,7 +42,7 @@ from training.trainer import (  # noqa: E402
     param_digest,
     run_stage,
 )
-from training.world_model_stage import Targets, train_world_model  # noqa: E402
+from training.world_model_stage import train_world_model  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
@@ -202,12 +202,11 @@ def test_refinement_improves_the_objective_and_leaves_the_world_model_untouched(
     policy_before = param_digest(policy)
     # the paper's form (no anchor): the objective itself must move
     cfg = tiny(refine_steps=40, refine_batch_size=8, refine_lr=3e-4, refine_w_anchor=0.0)
-    targets = Targets(norm)
     world_model.eval()
-    before = held_out_objective(cfg, policy, world_model, targets, windows, "cpu", limit=64)
+    before = held_out_objective(cfg, policy, world_model, windows, "cpu", limit=64)
     world_model.train()
     result = train_refine(cfg, policy, world_model, windows, norm)
-    after = held_out_objective(cfg, policy, world_model, targets, windows, "cpu", limit=64)
+    after = held_out_objective(cfg, policy, world_model, windows, "cpu", limit=64)
     assert result.steps == 40
     assert after["loss"] < before["loss"] - 0.1, (before, after)
     # Each training step draws new start frames and new ε, so its loss is noisy; the fixed
@@ -262,10 +261,9 @@ def test_no_uncertainty_removes_the_uncertainty_term(data):
     _, norm, windows, _ = data
     policy, world_model = models(norm)
     world_model.freeze()
-    targets = Targets(norm)
-    with_u = held_out_objective(tiny(), policy, world_model, targets, windows, "cpu", limit=16)
+    with_u = held_out_objective(tiny(), policy, world_model, windows, "cpu", limit=16)
     no_u = held_out_objective(
-        tiny(no_uncertainty=True), policy, world_model, targets, windows, "cpu", limit=16
+        tiny(no_uncertainty=True), policy, world_model, windows, "cpu", limit=16
     )
     u = with_u["u_image"] + with_u["u_speed"] + with_u["u_collision"]
     assert no_u["loss"] == pytest.approx(with_u["loss"] - 10 * u, rel=1e-4)

@@ -37,7 +37,6 @@ from torch import nn
 from training.held_out import held_out
 from training.models import sample_actions
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
-from training.world_model_stage import Targets
 
 if TYPE_CHECKING:
     from training.config import IterateConfig
@@ -107,7 +106,6 @@ def train_refine(
     policy.to(device)
     world_model.to(device)
     world_model.freeze()
-    targets = Targets(norm).to(device)
     horizon = cfg.profile_obj.horizon
     weights = (cfg.refine_w_speed, cfg.refine_w_collision, uncertainty_weight(cfg))
     sampler = PolicySampler(policy)
@@ -134,7 +132,7 @@ def train_refine(
     if val_dataset is not None and len(val_dataset) > 0:
 
         def val_fn() -> dict:
-            return held_out_objective(cfg, policy, world_model, targets, val_dataset, device)
+            return held_out_objective(cfg, policy, world_model, val_dataset, device)
 
     return run_stage(
         StageSpec.of(cfg, "refine"),
@@ -154,11 +152,10 @@ def train_refine(
 
 @torch.no_grad()
 def held_out_objective(
-    cfg: IterateConfig, policy, world_model, targets, dataset, device, batch_size=32, limit=256
+    cfg: IterateConfig, policy, world_model, dataset, device, batch_size=32, limit=256
 ) -> dict:
     """The refinement objective with ε = 0 (the μ the car would drive) on fixed windows, mean
     over batches (training/held_out.py)."""
-    del targets  # the world model carries its normalisation (WorldModel.imagine)
     weights = (cfg.refine_w_speed, cfg.refine_w_collision, uncertainty_weight(cfg))
 
     def measure(batch: dict) -> dict:
