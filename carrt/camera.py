@@ -29,6 +29,7 @@ import numpy as np
 from carrt.clock import WallClock
 from carrt.config import CameraConfig
 from carrt.errors import UserError
+from carrt.frame_lock import NewFrameSignal
 from carrt.interfaces import IMAGE_SHAPE, CameraFrame, Clock
 
 # Pause between retries after a failed read on a live device, so a dead camera does not spin
@@ -167,6 +168,7 @@ class OpenCVCamera:
         self._ended: str | None = None  # a video file ran out: lost once its last frame is stale
         self._fail_since: float | None = None
         self._seq = 0  # survives stop/start, so seq never goes backwards
+        self._new_frame = NewFrameSignal()
         self.read_failures = 0
         self.restarts = 0
         self.file_fps: float | None = None
@@ -209,6 +211,9 @@ class OpenCVCamera:
     # ------------------------------------------------------------------ Camera protocol
     def latest(self) -> CameraFrame | None:
         return self._latest
+
+    def wait_newer(self, seq: int, until: float) -> None:
+        self._new_frame.wait_newer(seq, until - self._clock.now())
 
     @property
     def lost(self) -> bool:
@@ -325,6 +330,7 @@ class OpenCVCamera:
                 self._fail_since = None
                 image = _to_rgb(frame)
                 self._latest = CameraFrame(image=image, captured_at=captured_at, seq=self._seq)
+                self._new_frame.announce(self._seq)
                 self._seq += 1
                 if is_file:
                     # No catch-up burst after a stall: a late frame resets the schedule.

@@ -58,6 +58,12 @@ class Camera(Protocol):
         """The newest frame captured so far (never blocks); None before the first."""
         ...
 
+    def wait_newer(self, seq: int, until: float) -> None:
+        """Return once a frame newer than `seq` has been captured, or at `until` on the
+        camera's clock, whichever comes first: the loop starts its tick on a frame's arrival
+        (carrt/frame_lock.py)."""
+        ...
+
     @property
     def lost(self) -> bool:
         """True when the source has died (device gone, pipeline error, file ended)."""

@@ -1,8 +1,9 @@
 """The 10 Hz control loop: camera → policy → arbitration → board, and the episode log.
 
-Ticks are scheduled on absolute deadlines (t0 + k·period) from an injectable clock, so one
-slow tick is an overrun that is counted, not a drift of every later tick; with the simulated
-clock the same loop runs faster than real time. Each tick is split into timed sections
+Ticks start on a camera frame's arrival, phase-locked to a 10 Hz grid of deadlines on an
+injectable clock (carrt/frame_lock.py), so the command leaves milliseconds after its frame and
+one slow tick is an overrun that is counted, not a drift of every later tick; with the
+simulated clock the same loop runs faster than real time. Each tick is split into timed sections
 (capture, preprocess, inference, arbitration, actuation, logging) whose p50/p99 are reported
 at exit with the achieved rate and the frame-to-command latency, in the spirit of openpilot's
 rates and liveness as data.
@@ -29,6 +30,7 @@ from carrt.arbitration import Arbiter, ArbiterInputs, Decision
 from carrt.camera import preprocess
 from carrt.config import CarConfig
 from carrt.episode_rule import EpisodeRule
+from carrt.frame_lock import FrameLock
 from carrt.interfaces import (
     Board,
     Camera,
@@ -58,7 +60,7 @@ class Tick:
     """One tick's values, handed from stage to stage (sense → infer → arbitrate → actuate →
     record); each stage fills in its part."""
 
-    start: float  # the tick's deadline on the loop's clock
+    start: float  # when the tick started on the loop's clock (on a frame's arrival)
     now: float = math.nan  # when the arbiter decided
     frame: Any = None  # CameraFrame | None
     joystick: Any = None  # JoystickState
@@ -114,7 +116,7 @@ class LoopSummary:
     skipped_inferences: int = 0
     sections_ms: dict[str, tuple[float, float]] = field(default_factory=dict)
     frame_to_command_ms: tuple[float, float] = (math.nan, math.nan)
-    tick_lateness_ms: tuple[float, float] = (math.nan, math.nan)  # tick start - its deadline
+    tick_lateness_ms: tuple[float, float] = (math.nan, math.nan)  # tick start - its frame
     max_tick_lateness_ms: float = math.nan
     interventions: int = 0
     collisions: int = 0
@@ -179,6 +181,7 @@ class ControlLoop:
         self.parts = parts
         self.config = config
         self.period = 1.0 / config.loop.rate_hz
+        self.frame_lock = FrameLock(self.period, 1.0 / config.camera.fps)
         self.record = record and parts.sink is not None
         self.episode_metadata = episode_metadata or {}
         self.max_steps = max_steps
@@ -215,7 +218,10 @@ class ControlLoop:
         self.arbiter.estop(why)
 
     def run(self) -> LoopSummary:
-        clock = self.parts.clock
+        """Ticks on frame arrival, phase-locked to the camera on a 10 Hz grid
+        (carrt/frame_lock.py); tick lateness is the time from that frame (or from the end of
+        a window no frame came in) to the tick's start."""
+        clock, camera, lock = self.parts.clock, self.parts.camera, self.frame_lock
         start = clock.now()
         deadline = start
         tick = 0
@@ -223,18 +229,14 @@ class ControlLoop:
             while not self.stop_event.is_set():
                 if self.max_steps is not None and tick >= self.max_steps:
                     break
-                self._lateness.append(clock.now() - deadline)
-                if not self._tick(deadline):
+                trigger = lock.wait(clock, camera, deadline)
+                due = trigger.frame_at if trigger.frame_at is not None else lock.closes(deadline)
+                self._lateness.append(max(0.0, trigger.at - due))
+                if not self._tick(trigger.at):
                     break
                 tick += 1
-                deadline += self.period
-                now = clock.now()
-                if now > deadline:
-                    # Late: count it and re-align to the next slot instead of bursting.
-                    missed = math.floor((now - deadline) / self.period) + 1
-                    self.summary.overruns += 1
-                    deadline += missed * self.period
-                clock.sleep_until(deadline)
+                deadline, late = lock.realign(lock.next_deadline(deadline, trigger), clock.now())
+                self.summary.overruns += late
         finally:
             self._shutdown(clock.now() - start, tick)
         return self.summary

@@ -295,8 +295,12 @@ def test_an_interrupted_stage_resumes_exactly(data, tmp_path):
     assert ck.load_checkpoint(tmp_path / "imitation.pt")["step"] == 8
 
 
-def test_ctrl_c_finishes_the_step_then_checkpoints(data, tmp_path):
+def test_ctrl_c_finishes_the_step_then_checkpoints(data, tmp_path, request):
     _, norm, _, free = data
+    # A runner started in the background (`cmd &` in a script) inherits SIGINT ignored; Ctrl-C
+    # in a terminal is what this test is about, so start from Python's own handler.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    request.addfinalizer(lambda: signal.signal(signal.SIGINT, previous))
     policy, _ = models(norm)
     common = {
         "config": {}, "profile": "tiny", "normalisation": norm.to_dict(), "data_digest": "x",

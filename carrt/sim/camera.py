@@ -13,6 +13,7 @@ from __future__ import annotations
 import threading
 from typing import Any
 
+from carrt.frame_lock import NewFrameSignal
 from carrt.interfaces import CameraFrame
 
 
@@ -30,6 +31,8 @@ class SimCamera:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.stalled = False  # a test hook and a demo: the camera stops delivering frames
+        self._new_frame = NewFrameSignal()
+        self._next_frame = 0.0
 
     def _capture(self) -> None:
         if self.stalled:
@@ -37,6 +40,7 @@ class SimCamera:
         x, y, yaw = self.plant.pose()
         image = self.renderer.render(x, y, yaw)
         self._latest = CameraFrame(image=image, captured_at=self.clock.now(), seq=self._seq)
+        self._new_frame.announce(self._seq)
         self._seq += 1
 
     def _run(self) -> None:
@@ -70,6 +74,19 @@ class SimCamera:
 
     def latest(self) -> CameraFrame | None:
         return self._latest
+
+    def wait_newer(self, seq: int, until: float) -> None:
+        """In real time the capture thread announces frames; on the simulated clock waiting
+        is advancing the clock, frame time by frame time, so the world moves meanwhile."""
+        if self.realtime:
+            self._new_frame.wait_newer(seq, until - self.clock.now())
+            return
+        while not self._has_newer(seq) and self.clock.now() < until - 1e-9:
+            coming = not self.stalled and self._next_frame > self.clock.now() + 1e-9
+            self.clock.sleep_until(min(until, self._next_frame) if coming else until)
+
+    def _has_newer(self, seq: int) -> bool:
+        return self._latest is not None and self._latest.seq > seq
 
     @property
     def lost(self) -> bool:
