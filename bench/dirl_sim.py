@@ -6,7 +6,7 @@
 
 Top to bottom, every step one of the project's own commands (logged under OUT/logs):
 
-1. Demonstrations (`python -m training.sim_data demos`): the scripted expert on the TRAINING
+1. Demonstrations (`carrt-sim-data demos`): the scripted expert on the TRAINING
    placements, both cores, from random places at rest with the loop's noise injection half of
    the time; for the robustness setting the same again with Gaussian noise of σ 0.5 and 1.0 on
    every expert command (the paper's imperfect demonstrator). A second pool of demonstrations on

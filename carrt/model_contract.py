@@ -66,7 +66,7 @@ def validate_metadata(meta: Mapping[str, str], control_period_s: float | None = 
     missing = [k for k in REQUIRED_KEYS if k not in meta]
     if missing:
         raise ContractError(
-            "metadata missing " + ", ".join(missing) + " (was it exported with `python -m export`?)"
+            "metadata missing " + ", ".join(missing) + " (was it exported with `carrt-export`?)"
         )
     if meta["carrt.schema"] != SCHEMA:
         raise ContractError(

@@ -55,7 +55,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     drive.add_argument(
         "--model", required=True,
-        help="policy .onnx exported by `python -m export`, or `demo` for the shipped policy",
+        help="policy .onnx exported by `carrt-export`, or `demo` for the shipped policy",
     )  # fmt: skip
     drive.add_argument(
         "--autopilot",

@@ -1,6 +1,6 @@
 """Policy → one self-contained ONNX file the car can trust (DESIGN §9).
 
-`export_policy` (used by training/iterate.py) and `python -m export` (by hand) do the same
+`export_policy` (used by training/iterate.py) and `carrt-export` (by hand) do the same
 thing: trace, attach carrt's metadata, check parity with PyTorch on recorded frames, validate
 with carrt's own loader, and only then rename the file into place.
 """

@@ -1,4 +1,4 @@
-"""`python -m export CHECKPOINT -o policy.onnx --episodes DIR [DIR…] [--int8] [--fp16]`.
+"""`carrt-export CHECKPOINT -o policy.onnx --episodes DIR [DIR…] [--int8] [--fp16]`.
 
 Exit codes: 0 written (and every requested variant written or skipped for lack of a
 provider); 1 a check refused the model or a requested variant; 2 unusable input (no
@@ -20,7 +20,7 @@ def build_parser() -> argparse.ArgumentParser:
     from export.onnx_export import DEFAULT_MAX_FRAMES, DEFAULT_TOLERANCE
 
     parser = argparse.ArgumentParser(
-        prog="python -m export",
+        prog="carrt-export",
         description="Export a trained policy checkpoint to one self-contained ONNX file "
         "that carrt accepts, checked for parity with PyTorch on recorded frames.",
     )

@@ -1,6 +1,6 @@
 """Give an exported policy a throttle ceiling.
 
-    python -m export.throttle_ceiling IN.onnx -o OUT.onnx --max-throttle 0.8
+    carrt-throttle-ceiling IN.onnx -o OUT.onnx --max-throttle 0.8
 
 Why a ceiling belongs to the policy file: a policy that imitates from one frame enters a tight
 bend faster than its demonstrator when the obstacle behind the bend is not yet in view, and a
@@ -70,10 +70,9 @@ def apply_throttle_ceiling(src: str | Path, dst: str | Path, ceiling: float) -> 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="python -m export.throttle_ceiling",
+        prog="carrt-throttle-ceiling",
         description="Copy an exported policy with a lower throttle bound (carrt.action_high).",
-        epilog="example: python -m export.throttle_ceiling run/policy.onnx -o policy.onnx "
-        "--max-throttle 0.8",
+        epilog="example: carrt-throttle-ceiling run/policy.onnx -o policy.onnx --max-throttle 0.8",
     )
     p.add_argument("model", help="policy .onnx written by export/ or training/iterate.py")
     p.add_argument("-o", "--out", required=True, help="where to write the copy")

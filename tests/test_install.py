@@ -117,6 +117,8 @@ def test_config_init_and_check_on_python_310(car_venv, tmp_path):
         (["carrt", "model", "info"], ("onnxruntime", "carrt[laptop]", "onnxruntime-gpu")),
         (["python", "-m", "export", "x.pt", "-o", "x.onnx", "--episodes", "d"], ("carrt[train]",)),
         (["python", "-m", "training.iterate", "--help"], ("carrt[train]",)),
+        (["carrt-train", "--help"], ("carrt[train]",)),
+        (["carrt-export", "x.pt", "-o", "x.onnx", "--episodes", "d"], ("carrt[train]",)),
     ],
 )
 def test_a_missing_package_is_one_line_naming_what_to_install(car_venv, tmp_path, command, names):

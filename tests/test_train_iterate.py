@@ -216,5 +216,5 @@ def test_script_mode_reports_bad_input_in_one_line(tmp_path):
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
-        "iterate.py: error: unknown profile 'nope'; choose one of tiny, cpu, paper"
+        "carrt-train: error: unknown profile 'nope'; choose one of tiny, cpu, paper"
     ]

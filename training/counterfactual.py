@@ -1,7 +1,7 @@
 """Does the world model know what actions do? Its imagination scored against the simulator's truth.
 
-    python -m training.counterfactual --run runs/iter1                 # tracks 200-204
-    python -m training.counterfactual --run runs/iter1 --data cf.npz   # a set made before
+    carrt-counterfactual --run runs/iter1                 # tracks 200-204
+    carrt-counterfactual --run runs/iter1 --data cf.npz   # a set made before
 
 Refinement improves the policy only as far as the world model ranks action sequences the way
 reality would. Losses on recorded windows cannot show that: the recordings hold the actions a
@@ -157,7 +157,7 @@ def describe(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m training.counterfactual", description=__doc__)
+    p = argparse.ArgumentParser(prog="carrt-counterfactual", description=__doc__)
     p.add_argument("--run", required=True, help="iterate.py run directory (world_model.pt)")
     p.add_argument("--data", help="counterfactual .npz (default: generate RUN/counterfactual.npz)")
     p.add_argument("--layout", default="hard")

@@ -7,14 +7,14 @@ Why a script and not a download: the demo must show a policy this project traine
 must be able to check that claim. The project's own commands, top to bottom, each resumable
 (a finished step is skipped when the script runs again):
 
-1. Demonstrations (`python -m training.sim_data demos`, i.e. `carrt teleop --sim --expert auto
+1. Demonstrations (`carrt-sim-data demos`, i.e. `carrt teleop --sim --expert auto
    --record --random-start` per placement): the scripted expert drives 220 obstacle placements
    (seeds 1000-1219; `mixed` layouts with 4-10 obstacles and the 8-obstacle `hard` layout in
    turn, random colours), 6 episodes each from random places at rest, with the paper's noise
    injection half of the time (the recordings hold the expert's recoveries). Both cores.
-2. Imitation (`training/iterate.py --profile cpu`, imitation only, colour augmentation, 8000
+2. Imitation (`carrt-train --profile cpu`, imitation only, colour augmentation, 8000
    steps of batch 64 with the learning rate decaying on a cosine).
-3. Take-overs (`python -m training.sim_data interventions`, i.e. `carrt drive --sim --autopilot
+3. Take-overs (`carrt-sim-data interventions`, i.e. `carrt drive --sim --autopilot
    --expert-intervene --record`): the imitation policy drives 100 training placements for 60
    simulated seconds each; the expert, playing the person with the pad, takes over before a
    collision, and its commands label the states the policy itself reached (what a person's
@@ -27,7 +27,7 @@ must be able to check that claim. The project's own commands, top to bottom, eac
    ships with a throttle ceiling of 0.8 in its action range (`export.throttle_ceiling`): the
    single-frame policy enters tight bends faster than the expert and meets an obstacle behind
    the bend too late; the ceiling was chosen once on validation placements 200-219, never on
-   the evaluation ones (docs/demo_policy_validation.json). `python -m export --int8` refused
+   the evaluation ones (docs/demo_policy_validation.json). `carrt-export --int8` refused
    an int8 variant of the network (error bound).
 7. `carrt eval` on the held-out placements 100-104 of the `hard` layout (never recorded for
    training), 60 simulated seconds each, two seeds: the paper's table, saved as JSON.

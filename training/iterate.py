@@ -1,7 +1,7 @@
 """One DIRL iteration, top to bottom: data → imitation → world model → refinement → export → report.
 
-    python training/iterate.py --episodes episodes/ --out runs/iter1 --profile cpu
-    python training/iterate.py --episodes episodes/ --out runs/iter2 --init runs/iter1
+    carrt-train --episodes episodes/ --out runs/iter1 --profile cpu
+    carrt-train --episodes episodes/ --out runs/iter2 --init runs/iter1
     torchrun --nproc_per_node 2 training/iterate.py …          # DistributedDataParallel
 
 Iteration 1 (no --init) learns the policy by imitation, then the world model, then refines the
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-if __package__ in (None, ""):  # run as `python training/iterate.py`: make `training` importable
+if __package__ in (None, ""):  # run as `carrt-train`: make `training` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch
@@ -62,7 +62,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def parse_args(argv: list[str] | None = None) -> IterateConfig:
-    p = _Parser(prog="iterate.py", description=__doc__.split("\n")[0])
+    p = _Parser(prog="carrt-train", description=__doc__.split("\n")[0])
     p.add_argument("--episodes", nargs="+", required=True, metavar="DIR")
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--init", metavar="DIR", help="previous iteration's run directory")
@@ -335,24 +335,24 @@ def main(argv: list[str] | None = None) -> int:
         return summary.get("exit_code", 0)
     except (UserError, ck.CheckpointError) as exc:
         if dist is None or dist.is_main:
-            print(f"iterate.py: error: {exc}", file=sys.stderr)
+            print(f"carrt-train: error: {exc}", file=sys.stderr)
         return 2
     except StopRequested as exc:
         if dist is None or dist.is_main:
-            print(f"iterate.py: stopped at {exc} (stop_after); run the same command to resume")
+            print(f"carrt-train: stopped at {exc} (stop_after); run the same command to resume")
         return 0
     except FloatingPointError as exc:
         print(
-            f"iterate.py: training diverged: {exc}; the last checkpoint is intact", file=sys.stderr
+            f"carrt-train: training diverged: {exc}; the last checkpoint is intact", file=sys.stderr
         )
         return 1
     except Interrupted as exc:
         if dist is None or dist.is_main:
-            print(f"iterate.py: interrupted at {exc}; checkpoint saved, run the same command "
+            print(f"carrt-train: interrupted at {exc}; checkpoint saved, run the same command "
                   "to resume", file=sys.stderr)  # fmt: skip
         return 130
     except KeyboardInterrupt:
-        print("iterate.py: interrupted; run the same command to resume from the last checkpoint",
+        print("carrt-train: interrupted; run the same command to resume from the last checkpoint",
               file=sys.stderr)  # fmt: skip
         return 130
     finally:

@@ -1,9 +1,9 @@
 """Training data from the simulator at scale: many obstacle placements, both cores busy.
 
-    python -m training.sim_data demos --out data/expert --tracks 1000-1149 --jobs 2
-    python -m training.sim_data interventions --model policy.onnx --out data/iter1 \
+    carrt-sim-data demos --out data/expert --tracks 1000-1149 --jobs 2
+    carrt-sim-data interventions --model policy.onnx --out data/iter1 \
         --tracks 1000-1149
-    python -m training.sim_data drives --model policy.onnx --out data/crashes --tracks 1000-1019
+    carrt-sim-data drives --model policy.onnx --out data/crashes --tracks 1000-1019
 
 Each placement is one run of the project's own recording command, exactly what a user types:
 `carrt teleop --sim --expert auto --record` for demonstrations (the scripted expert drives from
@@ -159,7 +159,7 @@ def count_frames(*dirs: Path) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m training.sim_data", description=__doc__)
+    parser = argparse.ArgumentParser(prog="carrt-sim-data", description=__doc__)
     sub = parser.add_subparsers(dest="what", required=True)
     for name in ("demos", "interventions", "drives"):
         p = sub.add_parser(name)
