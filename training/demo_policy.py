@@ -28,8 +28,8 @@ must be able to check that claim. The project's own commands, top to bottom, eac
    single-frame policy enters tight bends faster than the expert and meets an obstacle behind
    the bend too late; the ceiling is chosen on validation placements 200-219 by a fixed rule,
    never on the evaluation ones (docs/demo_policy_validation.json; 0.8 before the loop was
-   phase-locked to the camera, 0.9 when the rule was applied again after it). `carrt-export --int8` refused
-   an int8 variant of the network (error bound).
+   phase-locked to the camera, 0.9 when the rule was applied again after it).
+   `carrt-export --int8` refused an int8 variant of the network (error bound).
 7. `carrt eval` on the held-out placements 100-104 of the `hard` layout (never recorded for
    training), 60 simulated seconds each, two seeds: the paper's table, saved as JSON.
 
