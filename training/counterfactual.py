@@ -84,10 +84,10 @@ def true_objective(data: dict, w_speed: float, w_collision: float) -> np.ndarray
 
 
 @torch.no_grad()
-def score(world_model, norm, data: dict, cfg) -> dict:
+def score(world_model, data: dict, cfg) -> dict:
     """The three numbers (and their parts) for one world model on one counterfactual set; cfg:
     the refinement weights (an IterateConfig, or its fields), -unc's zero included."""
-    del norm  # the world model carries its own normalisation (WorldModel.imagine)
+    # No normalisation argument: the world model carries its own (WorldModel.imagine).
     world_model.eval()
     n, k, h, _ = data["actions"].shape
     if h != world_model.horizon:
@@ -135,12 +135,9 @@ def check_run(run: Path, data_path: Path | None, layout: str, tracks: str, start
         data_path, onnx = run / "counterfactual.npz", run / "policy.onnx"
         if not data_path.is_file() or load(data_path)["meta"]["model_sha256"] != file_sha256(onnx):
             generate(onnx, data_path, layout, tracks, starts, seed=0)
-    from training.data import Normalisation
-
     world_model, ckpt = ck.load_world_model(wm_path)
     cfg = SimpleNamespace(**ckpt["config"])  # the run's IterateConfig, as its checkpoint saved it
-    norm = Normalisation.from_dict(ckpt["normalisation"])
-    result = score(world_model, norm, load(data_path), cfg)
+    result = score(world_model, load(data_path), cfg)
     result["data"] = str(data_path)
     return result
 
