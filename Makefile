@@ -14,7 +14,7 @@ STAMP310 := $(VENV310)/.installed
 FW_SOURCES := $(wildcard firmware_bridge/firmware/carrt_fw/src/*.[ch] firmware_bridge/firmware/host/*.c) \
 	firmware_bridge/core_sources.py setup.py
 
-.PHONY: demo test test-py310 bench study demo-policy il-curve lint format clean firmware core
+.PHONY: demo test test-py310 bench study demo-policy il-curve lint format clean firmware emulator core
 
 $(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
@@ -132,3 +132,12 @@ $(FW_BUILD)/arduino/%.cpp.o: $(ARDUINO_AVR)/cores/arduino/%.cpp
 $(FW_BUILD)/arduino/%.S.o: $(ARDUINO_AVR)/cores/arduino/%.S
 	@mkdir -p $(@D)
 	avr-gcc $(AVR_FLAGS) -x assembler-with-cpp -c $< -o $@
+
+# The emulated board (firmware_bridge/avr_emulator.py builds it on first use): simavr running
+# the ELF above, its UART on a pty. Needs simavr and libsimavr-dev.
+SIMAVR_INCLUDE ?= /usr/include/simavr
+EMULATOR := build/emulator/carrt_avr_emu
+emulator: $(EMULATOR)
+$(EMULATOR): firmware_bridge/firmware/emulator/carrt_avr_emu.c
+	@mkdir -p $(@D)
+	gcc -O2 -std=gnu11 -Wall -Wextra -Werror -I$(SIMAVR_INCLUDE) $< -o $@ -lsimavr -lutil

@@ -66,7 +66,8 @@ static void pwm_begin() {
 
 static void hal_pwm_write(void *ctx, uint8_t channel, uint16_t pulse_us) {
   (void)ctx;
-  uint16_t counts = (uint16_t)(pulse_us * PWM_COUNTS_PER_US);
+  // The pin is high for OCR1x + 1 timer counts (BOTTOM through the match), hence the - 1.
+  uint16_t counts = (uint16_t)(pulse_us * PWM_COUNTS_PER_US - 1u);
   ATOMIC_BLOCK(ATOMIC_RESTORESTATE) {  // 16-bit registers share one TEMP byte
     if (channel == FW_PWM_STEERING) {
       OCR1A = counts;
