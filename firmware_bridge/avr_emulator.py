@@ -95,6 +95,15 @@ class Event:
         return self.cycle / F_CPU
 
 
+@dataclass(frozen=True)
+class BusyPin:
+    """Cycles a busy pin was high in a measuring interval, how often, and the longest stretch."""
+
+    total: int
+    count: int
+    longest: int
+
+
 class AvrEmulator:
     """One emulated board: the process, its pty and its control channel (thread-safe)."""
 
@@ -183,10 +192,10 @@ class AvrEmulator:
         _, _, a, _, b = self.ask("pulses").split()
         return int(a), int(b)
 
-    def busy_cycles(self) -> tuple[int, int]:
-        """Total cycles the rx-busy pin (D12) was high, and how often it went high."""
-        _, cycles, count = self.ask("busy").split()
-        return int(cycles), int(count)
+    def busy(self) -> tuple[BusyPin, BusyPin]:
+        """CPU time in fw_core_rx (D12) and fw_core_tick (D11) since the last call."""
+        v = [int(x) for x in self.ask("busy").split()[1:]]
+        return BusyPin(*v[0:3]), BusyPin(*v[3:6])
 
     def take_events(self) -> list[Event]:
         """The events since the last call (the emulator keeps up to 16384 in between)."""

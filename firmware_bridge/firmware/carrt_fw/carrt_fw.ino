@@ -12,7 +12,8 @@
 // and OCR1A/OCR1B are double-buffered, so a new width never produces a runt pulse.
 //
 // Two more pins tell an observer (a scope, or the emulator in the tests) what the core does:
-// D13 (the on-board LED) is lit while ARMED; D12 is high while received bytes are handled.
+// D13 (the on-board LED) is lit while ARMED; D12 is high while received bytes are handled and
+// D11 while the core ticks (its cost, TELEMETRY included), so a scope measures the CPU load.
 
 #include <Arduino.h>
 #include <EEPROM.h>
@@ -28,7 +29,8 @@
 #define ESC_PIN 10         // OC1B (PB2): ESC (throttle) signal
 #define ENCODER_PIN 2      // INT0 (PD2): wheel encoder
 #define ARMED_LED_PIN 13   // PB5: lit while the core is ARMED
-#define RX_BUSY_PIN 12     // PB4: high while fw_core_rx() runs (CPU cost of the protocol)
+#define RX_BUSY_PIN 12     // PB4: high while fw_core_rx() runs (CPU cost of received frames)
+#define TICK_BUSY_PIN 11   // PB3: high while fw_core_tick() runs (timeouts, TELEMETRY out)
 #define SERIAL_BAUD 250000 // 0 % divisor error at 16 MHz
 #define RX_CHUNK 64        // bytes handled per loop() so tick() is never starved
 
@@ -130,6 +132,7 @@ void setup() {
   pwm_begin();
   pinMode(ARMED_LED_PIN, OUTPUT);
   pinMode(RX_BUSY_PIN, OUTPUT);
+  pinMode(TICK_BUSY_PIN, OUTPUT);
   pinMode(ENCODER_PIN, INPUT_PULLUP);
   attachInterrupt(digitalPinToInterrupt(ENCODER_PIN), on_encoder_edge, RISING);
 
@@ -154,6 +157,9 @@ void loop() {
     fw_core_rx(&core, buf, n, millis());
     PORTB &= (uint8_t)~_BV(PORTB4);
   }
-  fw_core_tick(&core, millis());
+  uint32_t now = millis();
+  PORTB |= _BV(PORTB3);  // TICK_BUSY_PIN
+  fw_core_tick(&core, now);
+  PORTB &= (uint8_t)~_BV(PORTB3);
   digitalWrite(ARMED_LED_PIN, fw_core_state(&core) == CARRT_STATE_ARMED ? HIGH : LOW);
 }

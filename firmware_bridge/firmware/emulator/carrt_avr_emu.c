@@ -5,7 +5,8 @@
  * EEPROM and 16-bit int arithmetic. Here the real ELF runs in simavr at 16 MHz with:
  *   - UART0 bridged to a pseudo-terminal, so the host opens it like /dev/ttyACM0;
  *   - emulated time paced to wall time (the host link's timeouts are wall-clock);
- *   - every edge of OC1A/OC1B (steering/ESC pulses on PB1/PB2), PB5 (ARMED LED) and PB4 (rx busy) recorded
+ *   - every edge of OC1A/OC1B (steering/ESC pulses on PB1/PB2), PB5 (ARMED LED) and PB4/PB3 (rx/tick busy)
+ *     recorded
  *     with its cycle, so pulse widths and watchdog delays are measured in emulated time;
  *   - PD2 (INT0, wheel encoder) driven with a square wave at a commanded rate;
  *   - a reset that keeps EEPROM, and EEPROM saved to / loaded from a file.
@@ -14,7 +15,9 @@
  * avr_emulator.py speaks it). The first line out is "ready <pty path>".
  *   time            -> "time <cycle> <lag_us>"   (lag: how far emulation trails wall time)
  *   pulses          -> "pulses <A width> <A count> <B width> <B count>" (widths in cycles)
- *   busy            -> "busy <cycles PB4 was high> <times it went high>"
+ *   busy            -> "busy <rx total> <rx count> <rx max> <tick total> <tick count> <tick max>"
+ *                      cycles PB4 (fw_core_rx) / PB3 (fw_core_tick) were high since the last
+ *                      busy, how often they went high, the longest; then starts over
  *   events          -> "events <dropped> <kind><value>@<cycle> ..." and clears the log; kinds:
  *                      L ARMED LED level, F host frame delimiter into the UART, A/B pulse width
  *                      changed (cycles), R reset
@@ -74,7 +77,14 @@ static event_t events[EVENT_CAPACITY];
 static size_t event_len;
 static uint64_t events_dropped;
 static pulse_pin_t pulse[2]; /* PB1 (OC1A, steering), PB2 (OC1B, ESC) */
-static pulse_pin_t busy;     /* PB4 */
+typedef struct {
+  uint64_t rise;
+  uint64_t total; /* cycles high */
+  uint64_t count; /* times it went high */
+  uint64_t max;   /* longest high */
+  int high;
+} busy_pin_t;
+static busy_pin_t busy[2]; /* PB4: fw_core_rx() runs, PB3: fw_core_tick() runs */
 static double encoder_hz;
 static double encoder_next;  /* cycle of the next PD2 toggle */
 static int encoder_level = 1;
@@ -159,14 +169,18 @@ static void on_pulse_pin(struct avr_irq_t *irq, uint32_t value, void *param) {
 
 static void on_busy_pin(struct avr_irq_t *irq, uint32_t value, void *param) {
   (void)irq;
-  (void)param;
-  if (value && !busy.high) {
-    busy.rise = avr->cycle;
-    busy.count++;
-  } else if (!value && busy.high) {
-    busy.width += avr->cycle - busy.rise; /* total cycles high */
+  busy_pin_t *p = &busy[(intptr_t)param];
+  if (value && !p->high) {
+    p->rise = avr->cycle;
+    p->count++;
+  } else if (!value && p->high) {
+    uint64_t width = avr->cycle - p->rise;
+    p->total += width;
+    if (width > p->max) {
+      p->max = width;
+    }
   }
-  busy.high = value ? 1 : 0;
+  p->high = value ? 1 : 0;
 }
 
 static void on_led_pin(struct avr_irq_t *irq, uint32_t value, void *param) {
@@ -315,7 +329,13 @@ static void handle_command(char *line) {
            (unsigned long long)pulse[0].count, (unsigned long long)pulse[1].width,
            (unsigned long long)pulse[1].count);
   } else if (strcmp(line, "busy") == 0) {
-    printf("busy %llu %llu\n", (unsigned long long)busy.width, (unsigned long long)busy.count);
+    printf("busy");
+    for (int i = 0; i < 2; i++) {
+      printf(" %llu %llu %llu", (unsigned long long)busy[i].total,
+             (unsigned long long)busy[i].count, (unsigned long long)busy[i].max);
+    }
+    printf("\n");
+    memset(busy, 0, sizeof busy); /* a pin high right now starts counting at its next rise */
   } else if (strcmp(line, "events") == 0) {
     reply_events();
   } else if (strncmp(line, "encoder ", 8) == 0) {
@@ -494,7 +514,8 @@ int main(int argc, char **argv) {
                           on_pulse_pin, (void *)(intptr_t)0);
   avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_TIMER_GETIRQ('1'), TIMER_IRQ_OUT_COMP + 1),
                           on_pulse_pin, (void *)(intptr_t)1);
-  connect_pin('B', 4, on_busy_pin, NULL);
+  connect_pin('B', 4, on_busy_pin, (void *)(intptr_t)0);
+  connect_pin('B', 3, on_busy_pin, (void *)(intptr_t)1);
   connect_pin('B', 5, on_led_pin, NULL);
   hook_ocr_writes();
   pd2 = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('D'), 2);
