@@ -2,9 +2,9 @@
 
 A decoded frame is ``type u8 · sequence u16 · payload · crc u32`` (little-endian), the CRC-32C
 taken over everything before it. (It was a CRC-16, which let about 1 in 65,536 damaged frames
-through; PROTOCOL.md has the rate now and what it costs the AVR.) COBS removes every 0x00 from the frame so a single 0x00 can
-end it: a receiver that starts mid-stream, or loses bytes, resynchronises at the next 0x00
-instead of misreading the rest of the session.
+through; PROTOCOL.md has the rate now and what it costs the AVR.) COBS removes every 0x00 from
+the frame so a single 0x00 can end it: a receiver that starts mid-stream, or loses bytes,
+resynchronises at the next 0x00 instead of misreading the rest of the session.
 
 The decoder is written for a serial port: it takes whatever chunk ``read()`` returned, keeps
 partial frames across calls, never raises on bad input, never grows without bound, and counts
