@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import random
 import statistics
+import subprocess
+import sys
 import time
 
 import pytest
 from avr_rig import RawHost, start_emulator
 
 from firmware_bridge import messages as m
-from firmware_bridge.avr_emulator import F_CPU
+from firmware_bridge.avr_emulator import F_CPU, AvrEmulatorError
 from firmware_bridge.timing import DECISION_STALE_MS, LINK_TIMEOUT_MS
 
 ARM = m.CommandFlags.ARM
@@ -189,3 +191,53 @@ def test_garbage_on_the_uart_neither_arms_nor_stops_the_board(emulator, host):
     assert rejected(after) > rejected(before)
     host.arm()
     assert host.state() == m.State.ARMED, "the link works again after the noise"
+
+
+def test_the_encoder_on_int0_counts_the_driven_edges(emulator, host):
+    start = host.telemetry().encoder_ticks
+    t0 = emulator.now_s()
+    emulator.set_encoder_hz(400.0)
+    time.sleep(0.5)
+    emulator.set_encoder_hz(0.0)
+    elapsed = emulator.now_s() - t0
+    time.sleep(0.05)
+    counted = host.telemetry().encoder_ticks - start
+    assert counted == pytest.approx(400.0 * elapsed, abs=3)
+
+
+def test_carrt_check_passes_against_the_emulated_board(emulator):
+    from carrt.cli import main
+
+    assert main(["check", "--port", emulator.port]) == 0
+
+
+def test_a_missing_firmware_file_is_one_line_and_exit_2(tmp_path):
+    done = subprocess.run(
+        [sys.executable, "-m", "firmware_bridge.avr_board", "--elf", str(tmp_path / "no.elf")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 2
+    assert done.stderr.strip() == f"avr board: error: firmware {tmp_path / 'no.elf'} not found"
+
+
+def test_the_avr_board_closes_the_loop_through_the_wheel_model():
+    from firmware_bridge.avr_board import AvrBoard
+    from firmware_bridge.drivetrain import WheelPlant
+
+    try:
+        board = AvrBoard(WheelPlant()).start()
+    except AvrEmulatorError as exc:
+        pytest.fail(str(exc), pytrace=False)
+    host = RawHost(board.port)
+    try:
+        host.wait_for(lambda x: isinstance(x, m.Telemetry) and x.mcu_time_ms > 150, 3.0)
+        host.arm()
+        host.drive(1.0, throttle=3000)
+        telemetry = host.telemetry()
+        assert telemetry.state == m.State.ARMED
+        assert telemetry.encoder_ticks > 20, "the wheel model turned the encoder on INT0"
+    finally:
+        host.close()
+        board.stop()
