@@ -241,3 +241,16 @@ def test_the_avr_board_closes_the_loop_through_the_wheel_model():
     finally:
         host.close()
         board.stop()
+
+
+def test_carrt_drive_sim_runs_on_the_emulated_board():
+    done = subprocess.run(
+        [sys.executable, "-m", "carrt", "drive", "--sim", "--autopilot", "--model", "demo",
+         "--duration", "4", "--board", "avr"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "emulated ATmega328P running the firmware binary" in done.stdout
+    (distance,) = [line for line in done.stdout.splitlines() if line.startswith("distance")]
+    metres = float(distance.split()[1])
+    assert metres > 2.0, f"the car barely moved under the emulated board: {distance}"
