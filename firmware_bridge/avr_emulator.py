@@ -131,11 +131,14 @@ class AvrEmulator:
         if eeprom_path is not None:
             args += ["--eeprom", str(eeprom_path)]
         self._lock = threading.Lock()
+        # stderr goes to a file, not a pipe: nobody reads it while the emulator runs, and a full
+        # pipe would stall the emulated CPU
+        self._stderr = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 (closed in close())
         self._proc = subprocess.Popen(
             args,
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
+            stderr=self._stderr,
             text=True,
             bufsize=1,
         )
@@ -151,7 +154,9 @@ class AvrEmulator:
                     return line.split(" ", 1)[1].strip()
         finally:
             timer.cancel()
-        err = (self._proc.stderr.read() if self._proc.stderr else "").strip().splitlines()
+        self._proc.wait()
+        self._stderr.seek(0)
+        err = self._stderr.read().strip().splitlines()
         raise AvrEmulatorError(
             f"the AVR emulator did not start: {err[-1] if err else 'no ready line'}"
         )
@@ -230,7 +235,7 @@ class AvrEmulator:
             except (AvrEmulatorError, OSError, subprocess.TimeoutExpired):
                 self._proc.kill()
                 self._proc.wait()
-        for stream in (self._proc.stdin, self._proc.stdout, self._proc.stderr):
+        for stream in (self._proc.stdin, self._proc.stdout, self._stderr):
             if stream is not None:
                 stream.close()
         if self._own_dir is not None:
