@@ -14,7 +14,7 @@ STAMP310 := $(VENV310)/.installed
 FW_SOURCES := $(wildcard firmware_bridge/firmware/carrt_fw/src/*.[ch] firmware_bridge/firmware/host/*.c) \
 	firmware_bridge/core_sources.py setup.py
 
-.PHONY: demo test test-py310 bench study demo-policy il-curve lint format clean firmware-avr core
+.PHONY: demo test test-py310 bench study demo-policy il-curve lint format clean firmware emulator core
 
 $(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
@@ -80,13 +80,64 @@ clean:
 	rm -rf $(VENV) $(VENV310) build firmware_bridge/_build firmware_bridge/_fw_core*.so \
 		.pytest_cache .hypothesis
 
-# Cross-compile the firmware core for an ATmega328P (Uno/Nano) with the same warnings as the
-# host build, plus -Wconversion, to catch 16-bit-int mistakes. Needs avr-gcc
-# (Debian/Ubuntu: apt-get install gcc-avr avr-libc).
-AVR_SRC := firmware_bridge/firmware/carrt_fw/src
-firmware-avr:
-	mkdir -p build/avr
-	printf '#include "fw_core.h"\nstatic fw_core_t core;\nstatic fw_hal_t hal;\nint main(void) {\n  fw_core_init(&core, &hal, 1u, 0u);\n  for (;;) { fw_core_tick(&core, 0u); }\n}\n' > build/avr/main.c
-	avr-gcc -mmcu=atmega328p -std=c99 -Os -Wall -Wextra -Werror -Wshadow -Wconversion -Wsign-conversion \
-		-I$(AVR_SRC) build/avr/main.c $(AVR_SRC)/fw_core.c $(AVR_SRC)/fw_frame.c -o build/avr/carrt_core.elf
-	avr-size -C --mcu=atmega328p build/avr/carrt_core.elf
+# The firmware for an ATmega328P (Uno/Nano), built with Debian's Arduino core and avr-gcc (no
+# arduino-cli; Debian/Ubuntu: apt-get install gcc-avr avr-libc arduino-core-avr), then its flash
+# and RAM use. The core C files are built first on their own with the host build's warnings plus
+# -Wconversion, which catches 16-bit-int mistakes. (Debian's avr-gcc 5.4 lacks C++17's DECIMAL_DIG, which
+# the core's WString.cpp wants: it gets the compiler's own value.)
+ARDUINO_AVR ?= /usr/share/arduino/hardware/arduino/avr
+FW_DIR := firmware_bridge/firmware/carrt_fw
+AVR_SRC := $(FW_DIR)/src
+FW_BUILD := build/firmware
+FW_ELF := $(FW_BUILD)/carrt_fw.elf
+AVR_FLAGS := -mmcu=atmega328p -DF_CPU=16000000L -DARDUINO=10807 -DARDUINO_AVR_UNO \
+	-DARDUINO_ARCH_AVR -Os -g -ffunction-sections -fdata-sections \
+	-I$(ARDUINO_AVR)/cores/arduino -I$(ARDUINO_AVR)/variants/standard \
+	-I$(ARDUINO_AVR)/libraries/EEPROM/src
+AVR_CFLAGS := $(AVR_FLAGS) -std=gnu11
+AVR_CXXFLAGS := $(AVR_FLAGS) -std=gnu++11 -fno-exceptions -fno-threadsafe-statics -fpermissive
+AVR_CORE_SRC := $(wildcard $(ARDUINO_AVR)/cores/arduino/*.c $(ARDUINO_AVR)/cores/arduino/*.cpp \
+	$(ARDUINO_AVR)/cores/arduino/*.S)
+AVR_CORE_OBJ := $(patsubst $(ARDUINO_AVR)/cores/arduino/%,$(FW_BUILD)/arduino/%.o,$(AVR_CORE_SRC))
+FW_CORE_OBJ := $(FW_BUILD)/src/fw_core.o $(FW_BUILD)/src/fw_frame.o
+FW_HEADERS := $(wildcard $(AVR_SRC)/*.h)
+
+firmware: $(FW_ELF)
+	avr-size -C --mcu=atmega328p $(FW_ELF)
+
+$(FW_ELF): $(FW_BUILD)/carrt_fw.o $(FW_CORE_OBJ) $(FW_BUILD)/arduino.a
+	avr-gcc -mmcu=atmega328p -Os -Wl,--gc-sections -o $@ $^ -lm
+	avr-objcopy -O ihex -R .eeprom $@ $(FW_BUILD)/carrt_fw.hex
+
+$(FW_BUILD)/carrt_fw.o: $(FW_DIR)/carrt_fw.ino $(FW_HEADERS)
+	@mkdir -p $(@D)
+	avr-g++ $(AVR_CXXFLAGS) -Wall -Wextra -Werror -x c++ -c $< -o $@
+
+$(FW_BUILD)/src/%.o: $(AVR_SRC)/%.c $(FW_HEADERS)
+	@mkdir -p $(@D)
+	avr-gcc $(AVR_CFLAGS) -Wall -Wextra -Werror -Wshadow -Wconversion -Wsign-conversion -c $< -o $@
+
+$(FW_BUILD)/arduino.a: $(AVR_CORE_OBJ)
+	rm -f $@
+	avr-ar rcs $@ $^
+
+$(FW_BUILD)/arduino/%.c.o: $(ARDUINO_AVR)/cores/arduino/%.c
+	@mkdir -p $(@D)
+	avr-gcc $(AVR_CFLAGS) -w -c $< -o $@
+
+$(FW_BUILD)/arduino/%.cpp.o: $(ARDUINO_AVR)/cores/arduino/%.cpp
+	@mkdir -p $(@D)
+	avr-g++ $(AVR_CXXFLAGS) -DDECIMAL_DIG=__DECIMAL_DIG__ -w -c $< -o $@
+
+$(FW_BUILD)/arduino/%.S.o: $(ARDUINO_AVR)/cores/arduino/%.S
+	@mkdir -p $(@D)
+	avr-gcc $(AVR_FLAGS) -x assembler-with-cpp -c $< -o $@
+
+# The emulated board (firmware_bridge/avr_emulator.py builds it on first use): simavr running
+# the ELF above, its UART on a pty. Needs simavr and libsimavr-dev.
+SIMAVR_INCLUDE ?= /usr/include/simavr
+EMULATOR := build/emulator/carrt_avr_emu
+emulator: $(EMULATOR)
+$(EMULATOR): firmware_bridge/firmware/emulator/carrt_avr_emu.c
+	@mkdir -p $(@D)
+	gcc -O2 -std=gnu11 -Wall -Wextra -Werror -I$(SIMAVR_INCLUDE) $< -o $@ -lsimavr -lutil

@@ -18,6 +18,7 @@ import sys
 from carrt import __version__
 from carrt.deps import missing_package_message
 from carrt.errors import EXIT_USAGE, UserError
+from firmware_bridge.avr_emulator import AvrEmulatorError
 from firmware_bridge.link import LinkError
 from firmware_bridge.native import FirmwareBuildError
 
@@ -118,7 +119,12 @@ def main(argv: list[str] | None = None) -> int:
     _setup_logging(args)
     try:
         return args.func(args)
-    except (UserError, LinkError, FirmwareBuildError) as exc:  # ContractError is a UserError
+    except (
+        UserError,
+        LinkError,
+        FirmwareBuildError,
+        AvrEmulatorError,
+    ) as exc:  # ContractError is a UserError
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"carrt {args.command}: error: {message}", file=sys.stderr)
         return EXIT_USAGE

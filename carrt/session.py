@@ -104,6 +104,13 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
     )
     sim.add_argument("--track-seed", type=int, default=0, help="obstacle placement seed")
     sim.add_argument(
+        "--board",
+        choices=("virtual", "avr"),
+        help="the board behind the pty in real time: the C core built for this machine "
+        "(virtual, default) or the firmware binary on an emulated ATmega328P (avr; implies "
+        "--realtime, needs gcc-avr arduino-core-avr simavr libsimavr-dev)",
+    )
+    sim.add_argument(
         "--realtime",
         action="store_true",
         help="run at wall-clock speed through the pty (default when a person drives)",

@@ -29,7 +29,7 @@ MAX_FRAME_DECODED = 64
 """Largest decoded frame (type + sequence + payload + CRC) either side accepts."""
 
 HEADER_SIZE = 3  # type u8 + sequence u16
-CRC_SIZE = 2
+CRC_SIZE = 4  # CRC-32C
 
 FIRMWARE_VERSION = (0, 1, 0)
 
@@ -253,7 +253,7 @@ def canonical_definition() -> str:
 
     Docs are left out on purpose: rewording a comment must not make boards incompatible.
     """
-    lines = [f"carrt-serial scale={SCALE} max={MAX_FRAME_DECODED} crc=ccitt-false cobs"]
+    lines = [f"carrt-serial scale={SCALE} max={MAX_FRAME_DECODED} crc=crc32c cobs"]
     for m in MESSAGES:
         body = ",".join(f"{name}:{kind}" for name, kind, _ in fields_of(m))
         lines.append(f"{m.__name__}={m.TYPE:#04x}/{m.DIRECTION}({body})")

@@ -133,6 +133,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
         "fwh_proto_roundtrip": (c.c_int, [c.c_uint8, c.c_char_p, c.c_size_t, u8p]),
         "fwh_encode_frame": (c.c_size_t, [c.c_uint8, c.c_uint16, c.c_char_p, c.c_size_t, u8p]),
         "fwh_crc16": (c.c_uint16, [c.c_char_p, c.c_size_t]),
+        "fwh_crc32c": (c.c_uint32, [c.c_char_p, c.c_size_t]),
     }
     for name, (restype, argtypes) in signatures.items():
         fn = getattr(lib, name)
@@ -287,7 +288,13 @@ def encode_frame(type_id: int, seq: int, payload: bytes) -> bytes:
     return bytes(out[:n])
 
 
+def crc32c(data: bytes) -> int:
+    """The C core's CRC-32C, the frames' CRC."""
+    data = bytes(data)
+    return int(load_library().fwh_crc32c(data, len(data)))
+
+
 def crc16(data: bytes) -> int:
-    """The C core's CRC-16/CCITT-FALSE."""
+    """The C core's CRC-16/CCITT-FALSE (the stored config blob's)."""
     data = bytes(data)
     return int(load_library().fwh_crc16(data, len(data)))

@@ -82,14 +82,16 @@ def test_c_frame_encoder_refuses_oversized_frames():
 
 
 def test_crc_check_value():
+    assert native.crc32c(b"123456789") == 0xE3069283 == codec.crc32c(b"123456789")
     assert native.crc16(b"123456789") == 0x29B1 == binascii.crc_hqx(b"123456789", 0xFFFF)
     assert native.crc16(b"") == 0xFFFF
 
 
 @PROPS
 @given(data=st.binary(max_size=300))
-def test_crc_agrees_with_binascii(data):
-    assert native.crc16(data) == binascii.crc_hqx(data, 0xFFFF)
+def test_crc_agrees_with_the_codec_and_binascii(data):
+    assert native.crc32c(data) == codec.crc32c(data)
+    assert native.crc16(data) == binascii.crc_hqx(data, 0xFFFF)  # the stored config's CRC
 
 
 def test_the_boards_timing_is_part_of_the_protocol(monkeypatch):

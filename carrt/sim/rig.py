@@ -70,6 +70,7 @@ class SimRigConfig:
     track_seed: int = 0
     seed: int = 0  # noise injection, the camera's phase, random starts
     realtime: bool = False  # forced by a person driving
+    board: str = "virtual"  # "avr": the firmware binary on the emulated ATmega328P (real time)
     expert: bool = False  # --expert auto: the scripted expert drives (teleop)
     autopilot: bool = False  # --autopilot: the policy drives and the pilot re-arms (drive)
     pad: bool = False  # a joystick instead of the keyboard window
@@ -108,15 +109,22 @@ def open_sim_rig(
         from carrt.sim.keyboard import require_display
 
         require_display()  # before anything starts: a window nobody can see drives nothing
-    realtime = sim.realtime or not scripted
+    realtime = sim.realtime or not scripted or sim.board == "avr"
     if realtime:
-        from firmware_bridge.virtual import VirtualBoard
-
         clock: Any = WallClock()
-        board = VirtualBoard(plant).start()
+        if sim.board == "avr":
+            from firmware_bridge.avr_board import AvrBoard
+
+            board: Any = AvrBoard(plant).start()
+            kind = "emulated ATmega328P running the firmware binary"
+        else:
+            from firmware_bridge.virtual import VirtualBoard
+
+            board = VirtualBoard(plant).start()
+            kind = "virtual board"
         stack.callback(board.stop)
         link = BoardLink(board.port).open()
-        where = f"in real time, virtual board on {board.port}"
+        where = f"in real time, {kind} on {board.port}"
     else:
         from firmware_bridge.direct import DirectBoardLink
 

@@ -223,3 +223,14 @@ uint16_t fwh_crc16(const uint8_t *data, size_t len) {
   }
   return crc;
 }
+
+uint32_t fwh_crc32c(const uint8_t *data, size_t len) {
+  uint32_t crc = 0xFFFFFFFFUL;
+  while (len > 0u) {
+    uint16_t chunk = len > 0xFFFFu ? 0xFFFFu : (uint16_t)len;
+    crc = fw_crc32c_update(crc, data, chunk);
+    data += chunk;
+    len -= chunk;
+  }
+  return crc ^ 0xFFFFFFFFUL;
+}

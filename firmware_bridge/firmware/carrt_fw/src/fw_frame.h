@@ -1,7 +1,8 @@
-/* Framing of the serial protocol: COBS with 0x00 delimiters and a CRC-16/CCITT-FALSE.
+/* Framing of the serial protocol: COBS with 0x00 delimiters and a CRC-32C.
  *
- * Decoded frame: type u8 · sequence u16 LE · payload (fixed size per type) · CRC u16 LE over
- * everything before it. This mirrors firmware_bridge/codec.py; tests/test_protocol_agreement.py
+ * Decoded frame: type u8 · sequence u16 LE · payload (fixed size per type) · CRC-32C u32 LE
+ * over everything before it. (CRC-16 let about 1 in 65,536 damaged frames through; see
+ * PROTOCOL.md for the rate now.) This mirrors firmware_bridge/codec.py; tests/test_protocol_agreement.py
  * checks the two byte for byte. */
 #ifndef CARRT_FW_FRAME_H
 #define CARRT_FW_FRAME_H
@@ -21,7 +22,14 @@ extern "C" {
 /* Encoded frame on the wire, including the trailing 0x00 delimiter. */
 #define FW_FRAME_MAX_ENCODED (FW_FRAME_MAX_COBS + 1)
 
-/* CRC-16/CCITT-FALSE: poly 0x1021, init 0xFFFF, no reflection, no final xor. */
+/* CRC-32C (Castagnoli): reflected poly 0x82F63B78, init and final xor 0xFFFFFFFF; 0xE3069283
+ * for "123456789". The frames' CRC. */
+uint32_t fw_crc32c(const uint8_t *data, uint16_t len);
+/* Continue over more bytes on the raw register (fw_crc32c == update(0xFFFFFFFF) ^ 0xFFFFFFFF). */
+uint32_t fw_crc32c_update(uint32_t crc, const uint8_t *data, uint16_t len);
+
+/* CRC-16/CCITT-FALSE: poly 0x1021, init 0xFFFF, no reflection, no final xor. Only the stored
+ * config blob uses it (fw_core.c), so a board's EEPROM contents stay valid. */
 uint16_t fw_crc16(const uint8_t *data, uint16_t len);
 /* Continue a CRC over more bytes (fw_crc16 == fw_crc16_update(0xFFFF, ...)). */
 uint16_t fw_crc16_update(uint16_t crc, const uint8_t *data, uint16_t len);
