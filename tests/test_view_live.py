@@ -13,7 +13,9 @@ import shutil
 import socket
 import subprocess
 import sys
+import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 from browser import chromium
@@ -135,6 +137,13 @@ def test_localhost_needs_no_token_but_a_local_host_and_only_estop_acts():
         for path in ("/camera.jpg", "/crop.jpg"):
             status, body = request(base + path)
             assert status == 200 and body[:2] == b"\xff\xd8", f"{path} is a JPEG"
+        started = time.monotonic()
+        assert json.loads(request(base + "/state.json?after=42")[1])["tick"] == 42
+        assert time.monotonic() - started > 0.9, "after=N waits (up to 1 s) for tick N+1"
+        threading.Timer(0.2, lambda: setattr(loop, "live", replace(loop.live, tick=43))).start()
+        started = time.monotonic()
+        assert json.loads(request(base + "/state.json?after=42")[1])["tick"] == 43
+        assert time.monotonic() - started < 0.8, "and answers as soon as it is published"
         rebinding = {"Host": f"evil.example:{server.port}"}
         assert request(base + "/state.json", headers=rebinding)[0] == 403, "DNS rebinding"
 
