@@ -2,9 +2,10 @@
 
 `carrt drive --sim --autopilot --realtime --model demo --view 0` (the whole stack in real time:
 virtual board on a pty, the camera rendering on its own thread, the demo policy in AUTO) runs
-CARRT_BENCH_VIEW_S seconds (30 by default) per run, in CARRT_BENCH_VIEW_ROUNDS rounds (3) of
-one run without a client and one with one, alternated so that whatever else loads the machine
-falls on both. The client is another process, as a browser is: it does what the live page does
+CARRT_BENCH_VIEW_S seconds (30 by default), twice at the same time, side by side: one run with
+a client watching and one without, so that whatever else loads this shared machine falls on
+both alike; CARRT_BENCH_VIEW_ROUNDS (3) such pairs, the client on the other run each round.
+The client is another process, as a browser is: it does what the live page does
 (state.json?after=N, answered when the next tick is published, then the camera and crop JPEGs
 of that tick, then 20 ms later the next poll) over one keep-alive connection. The issue's
 target: p99 with a client within 0.5 ms of p99 without.
@@ -19,6 +20,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -57,6 +59,8 @@ class PageClient:
                     self._get(conn, f"/camera.jpg?t={tick}")
                     self._get(conn, f"/crop.jpg?t={tick}")
                     self.frames += 1
+            except ConnectionRefusedError:
+                break  # the run is over and its server gone
             except (OSError, http.client.HTTPException, ValueError):
                 self.errors += 1
                 conn.close()
@@ -65,53 +69,65 @@ class PageClient:
         conn.close()
 
 
-def one_run(tmp: Path, with_client: bool) -> dict:
-    summary = tmp / f"summary-{int(with_client)}.json"
+def _start(tmp: Path, name: str) -> tuple[subprocess.Popen, Path, int]:
+    """Start one `carrt drive --sim --realtime --view 0`; return it, its summary and its port."""
+    summary = tmp / f"summary-{name}.json"
     env = {**os.environ, "SDL_VIDEODRIVER": "dummy", "PYTHONPATH": str(ROOT)}
     argv = [sys.executable, "-m", "carrt", "drive", "--sim", "--autopilot", "--realtime",
             "--model", "demo", "--layout", "easy", "--duration", str(SECONDS), "--view", "0",
             "--summary-json", str(summary)]  # fmt: skip
     process = subprocess.Popen(argv, env=env, cwd=tmp, stdout=subprocess.PIPE, text=True)
-    client = None
     for line in process.stdout:
         if line.startswith("view: "):
             port = int(line.split("://", 1)[1].split("/", 1)[0].rsplit(":", 1)[1])
-            if with_client:
-                client = PageClient(port)
-                client.thread.start()
-            break
-    process.stdout.read()  # the rest of its output, until it exits
-    if client is not None:
-        client.stop.set()
-        client.thread.join(5)
-    assert process.wait(timeout=60) == 0, "carrt drive --sim failed"
-    s = json.loads(summary.read_text())
-    return {
-        "client": with_client,
-        "ticks": s["steps"],
-        "overruns": s["overruns"],
-        "tick_lateness_p50_ms": s["tick_lateness_ms"][0],
-        "tick_lateness_p99_ms": s["tick_lateness_ms"][1],
-        "tick_lateness_max_ms": s["max_tick_lateness_ms"],
-        "client_requests": client.requests if client else 0,
-        "client_frames": client.frames if client else 0,
-        "client_errors": client.errors if client else 0,
-    }
+            # the rest of its output, read so that a full pipe never stalls it
+            threading.Thread(target=process.stdout.read, daemon=True).start()
+            return process, summary, port
+    raise AssertionError("carrt drive --sim ended without serving its view")
+
+
+def pair(tmp: Path, watched_first: bool) -> list[dict]:
+    """Two runs at once; the client watches one of them."""
+    first, second = _start(tmp, "a"), _start(tmp, "b")
+    watched, unwatched = (first, second) if watched_first else (second, first)
+    client = PageClient(watched[2])
+    client.thread.start()
+    results = []
+    for (process, summary, _), with_client in ((watched, True), (unwatched, False)):
+        assert process.wait(timeout=SECONDS + 60) == 0, "carrt drive --sim failed"
+        s = json.loads(summary.read_text())
+        results.append({
+            "client": with_client,
+            "ticks": s["steps"],
+            "overruns": s["overruns"],
+            "tick_lateness_p50_ms": s["tick_lateness_ms"][0],
+            "tick_lateness_p99_ms": s["tick_lateness_ms"][1],
+            "tick_lateness_max_ms": s["max_tick_lateness_ms"],
+        })  # fmt: skip
+    client.stop.set()
+    client.thread.join(5)
+    results[0].update(client_requests=client.requests, client_frames=client.frames,
+                      client_errors=client.errors)  # fmt: skip
+    return results
 
 
 def run() -> dict:
     runs = []
+    started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="carrt-bench-view-") as tmp:
-        for _ in range(ROUNDS):
-            for with_client in (False, True):
-                runs.append(one_run(Path(tmp), with_client))
-                r = runs[-1]
+        for k in range(ROUNDS):
+            for r in pair(Path(tmp), watched_first=k % 2 == 0):
+                runs.append(r)
+                extra = (
+                    f"; client {r['client_requests']} requests, {r['client_frames']} frame "
+                    f"pairs, {r['client_errors']} errors"
+                    if r["client"]
+                    else ""
+                )
                 print(
-                    f"   {'with' if with_client else 'no  '} client: p99 lateness "
+                    f"   round {k + 1} {'with' if r['client'] else 'no  '} client: p99 lateness "
                     f"{r['tick_lateness_p99_ms']:.2f} ms (p50 {r['tick_lateness_p50_ms']:.2f}, "
-                    f"max {r['tick_lateness_max_ms']:.2f}, {r['overruns']} overruns); client "
-                    f"{r['client_requests']} requests, {r['client_frames']} frame pairs, "
-                    f"{r['client_errors']} errors",
+                    f"max {r['tick_lateness_max_ms']:.2f}, {r['overruns']} overruns){extra}",
                     flush=True,
                 )
 
@@ -123,6 +139,7 @@ def run() -> dict:
     result = {
         "seconds_per_run": SECONDS,
         "rounds": ROUNDS,
+        "wall_s": time.perf_counter() - started,
         "p99_lateness_without_client_ms": without,
         "p99_lateness_with_client_ms": with_,
         "p99_difference_ms": with_ - without,
@@ -131,8 +148,8 @@ def run() -> dict:
         "runs": runs,
     }
     print(
-        f"   p99 tick lateness, mean of {ROUNDS} runs each: without a client {without:.2f} ms, "
-        f"with one {with_:.2f} ms, difference {with_ - without:+.2f} ms "
+        f"   p99 tick lateness, mean of {ROUNDS} runs each, side by side: without a client "
+        f"{without:.2f} ms, with one {with_:.2f} ms, difference {with_ - without:+.2f} ms "
         f"(target <= {TARGET_MS} ms: {'met' if result['within_target'] else 'NOT met'})"
     )
     return result
