@@ -339,6 +339,7 @@ class ControlLoop:
             collisions=self.summary.collisions,
             laps=self.summary.laps,
             tick=self.live.tick + 1,
+            deadline=tick.start,
             frame=tick.frame,
             image=tick.image,
             policy=tick.plan_action if tick.plan_action is not None else tick.fallback_action,
