@@ -338,17 +338,12 @@ class ControlLoop:
             episodes=self.summary.episodes,
             collisions=self.summary.collisions,
             laps=self.summary.laps,
-            tick=self.live.tick + 1,
-            deadline=tick.start,
-            frame=tick.frame,
-            image=tick.image,
+            tick=self.live.tick + 1, deadline=tick.start, frame=tick.frame, image=tick.image,
             policy=tick.plan_action if tick.plan_action is not None else tick.fallback_action,
-            plan=self.plans.plan,
-            sections_s=sections.times,
+            plan=self.plans.plan, sections_s=sections.times, telemetry_age_s=link.telemetry_age_s(),
             board_state=getattr(link.board_state, "name", str(link.board_state)),
-            telemetry_age_s=link.telemetry_age_s(),
             link_counters=dict(vars(link.counters)),  # a few ints: a copy costs ~1 µs
-        )
+        )  # fmt: skip
         mode_name = decision.mode.name
         self.summary.modes_s[mode_name] = self.summary.modes_s.get(mode_name, 0.0) + self.period
 
