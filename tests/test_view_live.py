@@ -21,7 +21,8 @@ import numpy as np
 from browser import chromium
 from view_rig import ROOT, carrt_with_view, request, state
 
-from carrt.interfaces import CameraFrame, LiveStatus, Mode, Plan
+from carrt.interfaces import HORIZON, CameraFrame, LiveStatus, Mode, Plan
+from carrt.loop import SECTIONS
 from carrt.view.live import ESTOP_WHY, LiveFeed
 from carrt.view.server import ViewServer
 
@@ -38,6 +39,11 @@ def _wait(predicate, timeout_s: float, what: str, interval_s: float = 0.02):
         assert time.monotonic() < deadline, f"{what} within {timeout_s} s"
         time.sleep(interval_s)
     return value
+
+
+def _auto_state(base: str) -> dict | None:
+    now = state(base)
+    return now if now["mode"] == "AUTO" else None
 
 
 def test_browser_sees_frames_advance_and_the_mode_change_on_its_estop(tmp_path):
@@ -65,7 +71,12 @@ def test_browser_sees_frames_advance_and_the_mode_change_on_its_estop(tmp_path):
         browser.save_screenshot(str(screenshot))
         if os.environ.get("CARRT_VIEW_SCREENSHOT"):  # README's docs/live_view.png
             shutil.copy(screenshot, os.environ["CARRT_VIEW_SCREENSHOT"])
-        assert state(run.base)["link"]["estops_sent"] == 0
+        now = _wait(lambda: _auto_state(run.base), 10, "a state in AUTO")
+        assert now["link"]["estops_sent"] == 0 and now["link"]["frames_sent"] > 0
+        assert set(now["sections_ms"]) == set(SECTIONS), "every section of the last tick"
+        assert now["board_state"] == "ARMED" and 0 <= now["telemetry_age_ms"] < 100
+        assert len(now["plan"]["mu"]) == len(now["plan"]["sigma"]) == HORIZON
+        assert now["policy"] == now["executed"], "in AUTO the policy's action is executed"
 
         browser.find_element("id", "estop").click()
         _wait(lambda: _text(browser, "mode") == "ESTOP", 3, "the page shows ESTOP")
