@@ -59,9 +59,15 @@ def finite(value: Any) -> Any:
 
 
 def page(name: str) -> Response:
-    """A page shipped as package data (carrt/view/*.html)."""
-    text = resources.files("carrt.view").joinpath(name).read_bytes()
-    return Response(text, "text/html; charset=utf-8")
+    """A page shipped as package data (carrt/view/*.html), with each `<!--include F.js-->` line
+    replaced by that script inline: one request, so a token in the page's URL covers it all."""
+    folder = resources.files("carrt.view")
+    text = folder.joinpath(name).read_text()
+    while (start := text.find("<!--include ")) >= 0:
+        end = text.index("-->", start)
+        script = folder.joinpath(text[start + len("<!--include ") : end].strip()).read_text()
+        text = f"{text[:start]}<script>\n{script}</script>{text[end + 3 :]}"
+    return Response(text.encode(), "text/html; charset=utf-8")
 
 
 def parse_address(text: str, flag: str = "--view") -> tuple[str, int]:
