@@ -45,12 +45,13 @@ EXAMPLES = {
     "config check": "carrt config check car.toml --set pwm.max_forward=0.4",
     "calibrate": "carrt calibrate --config car.toml --port /dev/ttyACM0",
     "teleop": "carrt teleop --config car.toml --record      # or: carrt teleop --sim",
-    "drive": "carrt drive --config car.toml --model policy.onnx --record\n"
-    "  carrt drive --sim --autopilot --model demo --layout hard --track-seed 101",
+    "drive": "carrt drive --config car.toml --model policy.onnx --record --view 0.0.0.0:8090\n"
+    "  carrt drive --sim --autopilot --model demo --layout hard --track-seed 101 --view 8090",
     "episodes": "carrt episodes ls episodes/",
     "episodes ls": "carrt episodes ls episodes/",
     "episodes show": "carrt episodes show episodes/20261123-101500-000 --meta",
     "episodes video": "carrt episodes video episodes/20261123-* -o run.mp4",
+    "episodes view": "carrt episodes view episodes/20261123-* --view 8090",
     "report": "carrt report episodes/ --per-episode",
     "model": "carrt model info policy.onnx",
     "model info": "carrt model info demo --json",

@@ -214,10 +214,13 @@ class EpisodeSink(Protocol):
 
 @dataclass(frozen=True)
 class LiveStatus:
-    """What the loop did on its last tick, for whoever watches (the simulator's keyboard window).
+    """What the loop did on its last tick, for whoever watches (the simulator's keyboard window,
+    the browser view of carrt/view/).
 
     The loop replaces it whole once per tick, so a reader on another thread always sees one
-    tick's values together, and never makes the loop wait.
+    tick's values together, and never makes the loop wait. The arrays and dicts in it are the
+    tick's own (made new each tick, never changed after): publishing them costs a reference,
+    and whatever a watcher does with them (JPEG, JSON) happens on the watcher's thread.
     """
 
     mode: Mode = Mode.DISARMED
@@ -229,3 +232,13 @@ class LiveStatus:
     episodes: int = 0
     collisions: int = 0
     laps: int = 0
+    tick: int = 0  # ticks published so far (the view's frame counter)
+    deadline: float = float("nan")  # when the tick was due, on the loop's clock
+    frame: CameraFrame | None = None  # the raw camera frame the tick used
+    image: np.ndarray | None = None  # the 96×96 crop the policy saw
+    policy: tuple[float, float] | None = None  # the plan's action this tick (fresh or fallback)
+    plan: Plan | None = None  # the last fresh plan: μ ± σ over the horizon
+    sections_s: dict[str, float] = field(default_factory=dict)  # this tick's section timings
+    board_state: str = ""  # as the board last reported it
+    telemetry_age_s: float = float("inf")
+    link_counters: dict[str, Any] = field(default_factory=dict)  # a copy, taken at the tick

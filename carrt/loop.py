@@ -329,7 +329,7 @@ class ControlLoop:
         """Timings into the summary, and the tick's LiveStatus for whoever watches."""
         for name, seconds in sections.times.items():
             self._timings[name].append(seconds)
-        decision = tick.decision
+        decision, link = tick.decision, self.parts.link
         self.live = LiveStatus(
             mode=decision.mode,
             why=self.arbiter.estop_reason if decision.mode == Mode.ESTOP else decision.reason,
@@ -340,7 +340,12 @@ class ControlLoop:
             episodes=self.summary.episodes,
             collisions=self.summary.collisions,
             laps=self.summary.laps,
-        )
+            tick=self.live.tick + 1, deadline=tick.start, frame=tick.frame, image=tick.image,
+            policy=tick.plan_action if tick.plan_action is not None else tick.fallback_action,
+            plan=self.plans.plan, sections_s=sections.times, telemetry_age_s=link.telemetry_age_s(),
+            board_state=getattr(link.board_state, "name", str(link.board_state)),
+            link_counters=dict(vars(link.counters)),  # a few ints: a copy costs ~1 µs
+        )  # fmt: skip
         mode_name = decision.mode.name
         self.summary.modes_s[mode_name] = self.summary.modes_s.get(mode_name, 0.0) + self.period
 

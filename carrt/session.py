@@ -94,6 +94,13 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--seed", type=int, default=0, help="noise injection seed")
     parser.add_argument("--summary-json", help="also write the end-of-run summary here")
+    parser.add_argument(
+        "--view",
+        metavar="[HOST:]PORT",
+        help="watch in a browser: camera and crop, mode, actions, plan, timings, link (PORT "
+        "serves on localhost; another HOST, e.g. 0.0.0.0:8090, needs the token printed at "
+        "start; the page can only e-stop)",
+    )
     sim = parser.add_argument_group("simulator (no car needed)")
     sim.add_argument("--sim", action="store_true", help="drive the built-in simulator")
     sim.add_argument(
@@ -186,6 +193,12 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
         LOG.info(f"model {policy.path.name}: {policy.provider}, warm-up {warm[-1] * 1e3:.1f} ms")
 
     with contextlib.ExitStack() as stack:
+        view = None
+        if getattr(args, "view", None) is not None:
+            from carrt.view.server import ViewServer
+
+            view = ViewServer(args.view)  # binds now: a port in use ends here, car untouched
+            stack.callback(view.close)
         if getattr(args, "sim", False):
             from carrt.sim.rig import open_sim_rig
 
@@ -240,6 +253,10 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             follower.mode_source = lambda: loop.arbiter.mode
         for watcher in rig.watches_loop:  # the simulator's keyboard window
             watcher.status_source = lambda: loop.live
+        if view is not None:
+            from carrt.view.live import live_view
+
+            live_view(view, loop, config, "drive" if policy else "teleop")
         rig.joystick.start(on_estop=lambda: loop.estop("joystick"))
         stack.callback(rig.joystick.stop)
         stopped_by = _stop_on_signals(loop, stack)

@@ -1,4 +1,4 @@
-"""`carrt episodes ls|show|video`: look at recordings before they go into training."""
+"""`carrt episodes ls|show|video|view`: look at recordings before they go into training."""
 
 from __future__ import annotations
 
@@ -51,9 +51,26 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     video.add_argument("--every", type=int, default=10, help="sheet: every Nth frame (default 10)")
     video.set_defaults(func=run)
 
+    view = sub.add_parser(
+        "view",
+        help="scrub episodes in a browser: frame, actions, plan, speed, flags, collisions, laps",
+        description="Serve a page that scrubs episodes step by step: the 96x96 frame, a* "
+        "(the person's), the policy's and the executed action, the plan's mu +- sigma, speed, "
+        "mode, flags, collision labels and lap marks, on a timeline of the whole run.",
+    )
+    view.add_argument("episode", metavar="EP", nargs="+", help="episode directories, in order")
+    view.add_argument(
+        "--view",
+        metavar="[HOST:]PORT",
+        default="8090",
+        help="where to serve (default 8090 on localhost; 0 picks a free port; another HOST "
+        "needs the token printed at start)",
+    )
+    view.set_defaults(func=run)
+
 
 def run(args: argparse.Namespace) -> int:
-    actions = {"ls": run_ls, "show": run_show, "video": run_video}
+    actions = {"ls": run_ls, "show": run_show, "video": run_video, "view": run_view}
     return actions[args.episodes_command](args)
 
 
@@ -92,6 +109,12 @@ def run_show(args: argparse.Namespace) -> int:
     else:
         print("(metadata: --meta)")
     return 0
+
+
+def run_view(args: argparse.Namespace) -> int:
+    from carrt.view.episodes import run_view as serve
+
+    return serve(args)
 
 
 def run_video(args: argparse.Namespace) -> int:

@@ -1,0 +1,141 @@
+"""`carrt episodes view EP...`: scrub recorded episodes in a browser, step by step.
+
+Why a page served by the same small server as the live view, and not a self-contained HTML file
+or a notebook: an episode of ten minutes is 6,000 frames, and a file that embedded them all
+would be tens of megabytes before it showed anything; served, the reader's memory map is read
+only where the slider stops, and nothing new is installed (no Jupyter, no Rerun viewer on a
+Jetson). The page gets the whole timeline once (speed, mode, actions, flags: small numbers) and
+asks for one step's frame and plan as the slider moves.
+
+Frames are PNG, not JPEG: lossless, so the page shows the 96×96 image the policy was trained
+on pixel for pixel (a 96×96 PNG is a few kB; nothing here runs at 10 Hz).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+from typing import Any
+
+import numpy as np
+
+from carrt.episodes.format import FLAGS
+from carrt.episodes.reader import Episode, read_episode
+from carrt.interfaces import Mode
+from carrt.view.server import Response, Route, ViewServer, json_response, page
+
+MODES = {int(m): m.name for m in Mode}
+
+
+class EpisodeFeed:
+    """The steps of `episodes` in order, numbered 0..total-1 across all of them."""
+
+    def __init__(self, episodes: list[Episode]) -> None:
+        self.episodes = episodes
+        self.starts = np.cumsum([0, *(ep.n for ep in episodes)])
+        self.total = int(self.starts[-1])
+
+    def routes(self) -> dict[str, Route]:
+        return {
+            "/": lambda q: page("episodes.html"),
+            "/episodes.json": lambda q: json_response(self.timeline()),
+            "/step.json": lambda q: json_response(self.step(self._k(q))),
+            "/frame.png": lambda q: self.frame(self._k(q)),
+        }
+
+    def _k(self, query: dict[str, str]) -> int:
+        k = int(query["k"])
+        if not 0 <= k < self.total:
+            raise IndexError(f"step {k} is not in 0..{self.total - 1}")
+        return k
+
+    def locate(self, k: int) -> tuple[Episode, int]:
+        e = int(np.searchsorted(self.starts, k, side="right")) - 1
+        return self.episodes[e], k - int(self.starts[e])
+
+    def timeline(self) -> dict[str, Any]:
+        """Everything the page draws along the slider, for every step at once."""
+
+        def joined(name: str) -> list:
+            parts = [np.asarray(ep.steps[name]) for ep in self.episodes]
+            return np.round(np.concatenate(parts).astype(np.float64), 3).tolist() if parts else []
+
+        return {
+            "total": self.total,
+            "episodes": [
+                {
+                    "name": ep.name,
+                    "start": int(start),
+                    "n": ep.n,
+                    "end_reason": ep.end_reason,
+                    "torn": ep.torn,
+                }
+                for ep, start in zip(self.episodes, self.starts[:-1], strict=True)
+            ],
+            "speed": joined("speed_mps"),
+            "mode": [MODES.get(int(v), str(v)) for v in joined("mode")],
+            "human": joined("human_action"),
+            "policy": joined("policy_action"),
+            "executed": joined("executed_action"),
+            "flags": {name: [bool(v) for v in joined(name)] for name in FLAGS},
+            "collision_label": [int(v) for ep in self.episodes for v in ep.collision],
+        }
+
+    def step(self, k: int) -> dict[str, Any]:
+        ep, i = self.locate(k)
+        s = ep.steps[i]
+        t0 = float(ep.steps["frame_captured_at"][0])
+        mu = np.asarray(s["plan_mu"], np.float64)
+        sigma = np.asarray(s["plan_sigma"], np.float64)
+        has_plan = bool(np.isfinite(mu).all())
+        laps = int(np.count_nonzero(ep.steps["lap"][: i + 1]))
+        return {
+            "k": k,
+            "episode": ep.name,
+            "i": i,
+            "n": ep.n,
+            "index": int(s["index"]),
+            "t_s": float(s["frame_captured_at"]) - t0,
+            "speed_mps": float(s["speed_mps"]),
+            "encoder_ticks": int(s["encoder_ticks"]),
+            "mode": MODES.get(int(s["mode"]), str(int(s["mode"]))),
+            "human": np.asarray(s["human_action"], np.float64).tolist(),
+            "policy": np.asarray(s["policy_action"], np.float64).tolist(),
+            "executed": np.asarray(s["executed_action"], np.float64).tolist(),
+            "plan": {"mu": mu.tolist(), "sigma": sigma.tolist()} if has_plan else None,
+            "flags": {name: bool(s[name]) for name in FLAGS},
+            "collision_label": int(ep.collision[i]),
+            "lap_marks": laps,
+            "end_reason": ep.end_reason,
+        }
+
+    def frame(self, k: int) -> Response:
+        import cv2
+
+        ep, i = self.locate(k)
+        ok, data = cv2.imencode(".png", cv2.cvtColor(np.asarray(ep.frames[i]), cv2.COLOR_RGB2BGR))
+        if not ok:
+            return Response(b"", "image/png", status=500)
+        return Response(data.tobytes(), "image/png")
+
+
+def run_view(args: argparse.Namespace) -> int:
+    """Serve until Ctrl-C (or SIGTERM); exits 0."""
+    episodes = [read_episode(path) for path in args.episode]  # errors before binding
+    server = ViewServer(args.view)
+    server.serve(EpisodeFeed(episodes).routes())
+    total = sum(ep.n for ep in episodes)
+    print(f"view: {server.url}", flush=True)
+    print(f"{len(episodes)} episode(s), {total} steps; Ctrl-C to stop", flush=True)
+    done = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: done.set())
+                for sig in (signal.SIGINT, signal.SIGTERM)}  # fmt: skip
+    try:
+        while not done.wait(0.5):
+            pass
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        server.close()
+    return 0
