@@ -2,9 +2,9 @@
 
 The loop's summary gives one p99 per run, which on a shared 2-core machine moves by
 milliseconds from run to run; bench_view pools the ticks of several runs instead, and gets them
-here, through the public Clock interface only: the loop sleeps until each tick's deadline on
-the main thread (the simulated camera sleeps on its own), so the time past the deadline when
-that sleep returns is the tick's lateness, as the loop measures it.
+here: every tick starts when `FrameLock.wait` returns (carrt/frame_lock.py), so wrapping it and
+applying `FrameLock.lateness`, the loop's own formula, gives each tick's lateness as the loop
+measures it (time from its frame, or from a window that closed without one, to its start).
 """
 
 from __future__ import annotations
@@ -12,25 +12,23 @@ from __future__ import annotations
 import json
 import os
 import sys
-import threading
-import time
 from pathlib import Path
 
 from carrt.cli import main
-from carrt.clock import WallClock
+from carrt.frame_lock import FrameLock, Trigger
 
 samples: list[float] = []
-_sleep_until = WallClock.sleep_until
+_wait = FrameLock.wait
 
 
-def sleep_until(self: WallClock, deadline: float) -> None:
-    _sleep_until(self, deadline)
-    if threading.current_thread() is threading.main_thread():
-        samples.append(time.monotonic() - deadline)
+def wait(self: FrameLock, clock, camera, deadline: float) -> Trigger:
+    trigger = _wait(self, clock, camera, deadline)
+    samples.append(self.lateness(trigger, deadline))
+    return trigger
 
 
 if __name__ == "__main__":
-    WallClock.sleep_until = sleep_until
+    FrameLock.wait = wait
     code = main(sys.argv[1:])
     Path(os.environ["CARRT_LATENESS_OUT"]).write_text(json.dumps(samples))
     sys.exit(code)

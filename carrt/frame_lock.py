@@ -62,6 +62,12 @@ class FrameLock:
         frame_at = frame.captured_at if _inside(frame, opens) else None
         return Trigger(at=clock.now(), frame_at=frame_at)
 
+    def lateness(self, trigger: Trigger, deadline: float) -> float:
+        """How long after its frame (or after the window closed without one) the tick started:
+        the loop's tick lateness."""
+        due = trigger.frame_at if trigger.frame_at is not None else self.closes(deadline)
+        return max(0.0, trigger.at - due)
+
     def next_deadline(self, deadline: float, trigger: Trigger) -> float:
         if trigger.frame_at is None:
             return deadline + self.period

@@ -233,7 +233,7 @@ class LiveStatus:
     collisions: int = 0
     laps: int = 0
     tick: int = 0  # ticks published so far (the view's frame counter)
-    deadline: float = float("nan")  # when the tick was due, on the loop's clock
+    deadline: float = float("nan")  # when the tick started (on its frame), on the loop's clock
     frame: CameraFrame | None = None  # the raw camera frame the tick used
     image: np.ndarray | None = None  # the 96×96 crop the policy saw
     policy: tuple[float, float] | None = None  # the plan's action this tick (fresh or fallback)

@@ -21,7 +21,7 @@ import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -43,12 +43,12 @@ from carrt.interfaces import (
     Step,
 )
 from carrt.laps import LapCounter
+from carrt.loop_summary import SECTIONS, LoopSummary, percentiles
 from carrt.noise import NoiseInjector
 from carrt.plan import PlanBuffer
 from carrt.speed import SpeedEstimator
 from firmware_bridge import messages as m
 
-SECTIONS = ("capture", "preprocess", "inference", "arbitration", "actuation", "logging")
 NAN2 = (math.nan, math.nan)
 
 
@@ -106,62 +106,6 @@ class LoopParts:
     # The simulator knows when the car hit something: True once per collision. On the real
     # car this stays None and the human's e-stop is the collision signal (as in the paper).
     collisions: Callable[[], bool] | None = None
-
-
-@dataclass
-class LoopSummary:
-    steps: int = 0
-    duration_s: float = 0.0
-    overruns: int = 0
-    skipped_inferences: int = 0
-    sections_ms: dict[str, tuple[float, float]] = field(default_factory=dict)
-    frame_to_command_ms: tuple[float, float] = (math.nan, math.nan)
-    tick_lateness_ms: tuple[float, float] = (math.nan, math.nan)  # tick start - its frame
-    max_tick_lateness_ms: float = math.nan
-    interventions: int = 0
-    collisions: int = 0
-    laps: int = 0  # by carrt/laps.py's rule, the same count as the simulator's and carrt report's
-    estops: int = 0
-    episodes: int = 0
-    recorded_steps: int = 0
-    dropped_steps: int = 0
-    modes_s: dict[str, float] = field(default_factory=dict)
-
-    @property
-    def achieved_hz(self) -> float:
-        return self.steps / self.duration_s if self.duration_s > 0 else 0.0
-
-    def render(self) -> str:
-        lines = [
-            f"loop: {self.steps} ticks in {self.duration_s:.1f} s = {self.achieved_hz:.2f} Hz, "
-            f"{self.overruns} overruns, {self.skipped_inferences} late inferences skipped",
-            "  section        p50 ms   p99 ms",
-        ]
-        for name in SECTIONS:
-            p50, p99 = self.sections_ms.get(name, (math.nan, math.nan))
-            lines.append(f"  {name:<12} {p50:8.2f} {p99:8.2f}")
-        p50, p99 = self.frame_to_command_ms
-        lines.append(f"  frame→command {p50:7.2f} {p99:8.2f}")
-        p50, p99 = self.tick_lateness_ms
-        lines.append(
-            f"  tick lateness {p50:7.2f} {p99:8.2f}   (max {self.max_tick_lateness_ms:.2f})"
-        )
-        lines.append(
-            f"  collisions {self.collisions}, interventions {self.interventions}, laps "
-            f"{self.laps}, e-stops {self.estops}, episodes "
-            f"{self.episodes}, steps recorded {self.recorded_steps}, dropped {self.dropped_steps}"
-        )
-        return "\n".join(lines)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {**self.__dict__, "achieved_hz": self.achieved_hz}
-
-
-def _percentiles(values: list[float]) -> tuple[float, float]:
-    if not values:
-        return (math.nan, math.nan)
-    p50, p99 = np.percentile(np.asarray(values) * 1e3, [50, 99])
-    return (float(p50), float(p99))
 
 
 class ControlLoop:
@@ -230,8 +174,7 @@ class ControlLoop:
                 if self.max_steps is not None and tick >= self.max_steps:
                     break
                 trigger = lock.wait(clock, camera, deadline)
-                due = trigger.frame_at if trigger.frame_at is not None else lock.closes(deadline)
-                self._lateness.append(max(0.0, trigger.at - due))
+                self._lateness.append(lock.lateness(trigger, deadline))
                 if not self._tick(trigger.at):
                     break
                 tick += 1
@@ -442,9 +385,9 @@ class ControlLoop:
             self.episodes.recording = False
         s = self.summary
         s.steps, s.duration_s = ticks, duration
-        s.sections_ms = {name: _percentiles(self._timings[name]) for name in SECTIONS}
-        s.frame_to_command_ms = _percentiles(self._latency)
-        s.tick_lateness_ms = _percentiles(self._lateness)
+        s.sections_ms = {name: percentiles(self._timings[name]) for name in SECTIONS}
+        s.frame_to_command_ms = percentiles(self._latency)
+        s.tick_lateness_ms = percentiles(self._lateness)
         s.max_tick_lateness_ms = max(self._lateness, default=math.nan) * 1e3
         s.interventions = self.arbiter.interventions
         s.estops = link.counters.estops_sent
