@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from carrt.policy import file_sha256
+from carrt.sim.counterfactual import SEQUENCE_NAMES
 from training import checkpoint as ck
 from training.evaluate import auroc, spearman
 from training.refine import sequence_objective, uncertainty_weight
@@ -96,6 +97,7 @@ def score(world_model, data: dict, cfg) -> dict:
         )
     weights = (cfg.refine_w_speed, cfg.refine_w_collision, uncertainty_weight(cfg))
     imagined_speed, risk, objective = np.zeros((n, k, h)), np.zeros((n, k)), np.zeros((n, k))
+    terms = {name: np.zeros((n, k)) for name in ("speed", "collision", "uncertainty")}
     for i in range(n):
         image = torch.from_numpy(data["image"][i]).expand(k, *data["image"].shape[1:])
         speed = torch.full((k, 1), float(data["speed"][i]))
@@ -104,6 +106,10 @@ def score(world_model, data: dict, cfg) -> dict:
         imagined_speed[i] = out["speed"].numpy()
         risk[i] = out["p_collision"].max(dim=1).values.numpy()
         objective[i] = sequence_objective(out, *weights).numpy()
+        for name, term_weights in (("speed", (weights[0], 0.0, 0.0)),
+                                   ("collision", (0.0, weights[1], 0.0)),
+                                   ("uncertainty", (0.0, 0.0, weights[2]))):  # fmt: skip
+            terms[name][i] = sequence_objective(out, *term_weights).numpy()
     collided = data["true_collision"].max(axis=2)
     auroc, pairs = within_start_auroc(risk, collided)
     # speed: steps before the first collision (the collision step's speed is the crash's)
@@ -112,6 +118,12 @@ def score(world_model, data: dict, cfg) -> dict:
     baseline = np.broadcast_to(data["speed"][:, None, None], true_speed.shape)
     truth = true_objective(data, cfg.refine_w_speed, cfg.refine_w_collision)
     rhos = [spearman(objective[i], truth[i]) for i in range(n)]
+
+    def rank_correlation(imagined: np.ndarray, real: np.ndarray) -> float:
+        values = [spearman(imagined[i], real[i]) for i in range(n)]
+        return float(np.nanmean(values)) if np.isfinite(values).any() else float("nan")
+
+    true_distance = (data["true_speed"] * data["mask"]).sum(axis=2)
     return {
         "starts": int(n),
         "sequences_per_start": int(k),
@@ -121,6 +133,25 @@ def score(world_model, data: dict, cfg) -> dict:
         "speed_mae": float(np.abs(imagined_speed - true_speed)[before].mean()),
         "speed_mae_constant": float(np.abs(baseline - true_speed)[before].mean()),
         "rank_correlation": float(np.nanmean(rhos)) if np.isfinite(rhos).any() else float("nan"),
+        # Which term of the imagined objective ranks the sequences right or wrong, alone, and
+        # how the true objective itself splits: its ranking by the true speed term alone.
+        "rank_correlation_terms": {
+            name: rank_correlation(term, truth) for name, term in terms.items()
+        },
+        "rank_correlation_true_speed_term": rank_correlation(-true_distance, truth),
+        "imagined_vs_true_distance": rank_correlation(imagined_speed.sum(axis=2), true_distance),
+        # Per kind of sequence (SEQUENCE_NAMES, when the set has them all), over the starts: what
+        # happened and what the world model imagined. A head blind to steering shows here as the
+        # same imagined risk for a steering shift that truly crashes as for the plan.
+        "by_sequence": {
+            name: {
+                "true_distance": float(true_distance[:, j].mean()),
+                "imagined_distance": float(imagined_speed[:, j].sum(axis=1).mean()),
+                "true_collision": float(collided[:, j].mean()),
+                "imagined_risk": float(risk[:, j].mean()),
+            }
+            for j, name in enumerate(SEQUENCE_NAMES if k == len(SEQUENCE_NAMES) else ())
+        },
         "plan_is_best_imagined": float(np.mean(objective.argmin(axis=1) == 0)),
         "plan_is_best_true": float(np.mean(truth.argmin(axis=1) == 0)),
     }
@@ -153,6 +184,25 @@ def describe(result: dict) -> str:
     )
 
 
+def by_sequence_table(result: dict) -> list[str]:
+    """Markdown: per kind of sequence, true against imagined distance and collision."""
+    rows = result.get("by_sequence") or {}
+    if not rows:
+        return []
+    lines = ["| sequence | true Σ speed | imagined Σ speed | collided | imagined risk |",
+             "|---|---|---|---|---|"]  # fmt: skip
+    for name, r in rows.items():
+        lines.append(
+            f"| {name} | {r['true_distance']:.2f} | {r['imagined_distance']:.2f} | "
+            f"{r['true_collision']:.2f} | {r['imagined_risk']:.2f} |"
+        )
+    terms = ", ".join(f"{k} {v:.2f}" for k, v in result["rank_correlation_terms"].items())
+    true_speed = result["rank_correlation_true_speed_term"]
+    lines += ["", f"Rank correlation with the true objective of each imagined term alone: "
+              f"{terms}; of the true speed term alone {true_speed:.2f}."]  # fmt: skip
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="carrt-counterfactual", description=__doc__)
     p.add_argument("--run", required=True, help="iterate.py run directory (world_model.pt)")
@@ -164,6 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     result = check_run(Path(a.run), Path(a.data) if a.data else None, a.layout, a.tracks, a.starts)
     print(describe(result))
+    print("\n".join(by_sequence_table(result)))
     if a.json:
         Path(a.json).write_text(json.dumps(result, indent=2) + "\n")
     return 0

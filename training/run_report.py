@@ -180,7 +180,7 @@ def render(cfg, r: dict, export_lines: list[str]) -> str:
         )
         md.append("")
     if r.get("counterfactual"):
-        from training.counterfactual import describe
+        from training.counterfactual import by_sequence_table, describe
 
         c = r["counterfactual"]
         md += [
@@ -191,6 +191,8 @@ def render(cfg, r: dict, export_lines: list[str]) -> str:
             "world model (training/counterfactual.py):",
             "",
             describe(c),
+            "",
+            *by_sequence_table(c),
             "",
         ]
     if r["figures"]:
