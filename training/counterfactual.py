@@ -117,13 +117,7 @@ def score(world_model, data: dict, cfg) -> dict:
     true_speed = data["true_speed"]
     baseline = np.broadcast_to(data["speed"][:, None, None], true_speed.shape)
     truth = true_objective(data, cfg.refine_w_speed, cfg.refine_w_collision)
-    rhos = [spearman(objective[i], truth[i]) for i in range(n)]
-
-    def rank_correlation(imagined: np.ndarray, real: np.ndarray) -> float:
-        values = [spearman(imagined[i], real[i]) for i in range(n)]
-        return float(np.nanmean(values)) if np.isfinite(values).any() else float("nan")
-
-    true_distance = (data["true_speed"] * data["mask"]).sum(axis=2)
+    true_distance = (true_speed * data["mask"]).sum(axis=2)
     return {
         "starts": int(n),
         "sequences_per_start": int(k),
@@ -132,7 +126,7 @@ def score(world_model, data: dict, cfg) -> dict:
         "auroc_pairs": pairs,
         "speed_mae": float(np.abs(imagined_speed - true_speed)[before].mean()),
         "speed_mae_constant": float(np.abs(baseline - true_speed)[before].mean()),
-        "rank_correlation": float(np.nanmean(rhos)) if np.isfinite(rhos).any() else float("nan"),
+        "rank_correlation": rank_correlation(objective, truth),
         # Which term of the imagined objective ranks the sequences right or wrong, alone, and
         # how the true objective itself splits: its ranking by the true speed term alone.
         "rank_correlation_terms": {
@@ -155,6 +149,13 @@ def score(world_model, data: dict, cfg) -> dict:
         "plan_is_best_imagined": float(np.mean(objective.argmin(axis=1) == 0)),
         "plan_is_best_true": float(np.mean(truth.argmin(axis=1) == 0)),
     }
+
+
+def rank_correlation(imagined: np.ndarray, real: np.ndarray) -> float:
+    """Spearman's ρ between (N, K) scores within each start, averaged over the starts that
+    have one (NaN where a start's sequences all score the same)."""
+    values = [spearman(a, b) for a, b in zip(imagined, real, strict=True)]
+    return float(np.nanmean(values)) if np.isfinite(values).any() else float("nan")
 
 
 def check_run(run: Path, data_path: Path | None, layout: str, tracks: str, starts: int) -> dict:
