@@ -38,7 +38,6 @@ import numpy as np
 import torch
 
 from carrt.policy import file_sha256
-from carrt.sim.counterfactual import SEQUENCE_NAMES
 from training import checkpoint as ck
 from training.evaluate import auroc, spearman
 from training.refine import sequence_objective, uncertainty_weight
@@ -134,9 +133,10 @@ def score(world_model, data: dict, cfg) -> dict:
         },
         "rank_correlation_true_speed_term": rank_correlation(-true_distance, truth),
         "imagined_vs_true_distance": rank_correlation(imagined_speed.sum(axis=2), true_distance),
-        # Per kind of sequence (SEQUENCE_NAMES, when the set has them all), over the starts: what
-        # happened and what the world model imagined. A head blind to steering shows here as the
-        # same imagined risk for a steering shift that truly crashes as for the plan.
+        # Per kind of sequence (named in the set's meta, so this torch process never imports the
+        # simulator), over the starts: what happened and what the world model imagined. A head
+        # blind to steering shows here as the same imagined risk for a steering shift that truly
+        # crashes as for the plan.
         "by_sequence": {
             name: {
                 "true_distance": float(true_distance[:, j].mean()),
@@ -144,7 +144,7 @@ def score(world_model, data: dict, cfg) -> dict:
                 "true_collision": float(collided[:, j].mean()),
                 "imagined_risk": float(risk[:, j].mean()),
             }
-            for j, name in enumerate(SEQUENCE_NAMES if k == len(SEQUENCE_NAMES) else ())
+            for j, name in enumerate(data["meta"].get("sequences", ()))
         },
         "plan_is_best_imagined": float(np.mean(objective.argmin(axis=1) == 0)),
         "plan_is_best_true": float(np.mean(truth.argmin(axis=1) == 0)),
