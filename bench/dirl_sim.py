@@ -67,7 +67,15 @@ class StudyConfig:
     iterations: int = 3  # DIRL iterations (σ = 0)
     robustness_iterations: int = 1  # DIRL iterations for σ > 0
     drive_seconds: float = 15.0  # simulated s per training placement per DIRL iteration
-    drive_explore: bool = False  # noise injection on the policy's commands in those drives
+    # Noise on the policy's commands in those drives (noise.during_auto): without it steering
+    # is a function of the place and the world model learns its collision risk backwards
+    # (docs/architecture.md, "what the world model can learn"); the paper's ±0.3 half the time
+    # was not enough, ±0.8 held 0.5-1.5 s for 80 % of the time was (counterfactual check).
+    drive_explore: bool = True
+    explore_fraction: float = 0.8  # share of drive time perturbed (noise.fraction)
+    explore_amplitude: float = 0.8  # uniform ± on steering and throttle (noise.amplitude)
+    explore_hold_s: tuple[float, ...] = (0.5, 1.5)  # each value held this long (min, max)
+    w_image: float = 0.1  # the world model's image-loss weight (training/config.py)
     imitation_steps: int = 3000
     world_model_steps: int = 3000  # iteration 1
     world_model_steps_next: int = 1500  # later iterations continue the previous world model
@@ -143,6 +151,16 @@ def iterate_cmd(cfg: StudyConfig, episodes: list[Path], out: Path, *extra: str) 
               "--out", str(out), "--profile", cfg.profile, *sets, *extra)  # fmt: skip
 
 
+def explore_args(cfg: StudyConfig) -> list[str]:
+    """`carrt-sim-data drives` arguments for the exploration noise (none when it is off)."""
+    if not cfg.drive_explore:
+        return []
+    lo, hi = cfg.explore_hold_s
+    sets = (f"noise.fraction={cfg.explore_fraction}", f"noise.amplitude={cfg.explore_amplitude}",
+            f"noise.hold_min_s={lo}", f"noise.hold_max_s={hi}")  # fmt: skip
+    return ["--explore", *(arg for item in sets for arg in ("--set", item))]
+
+
 def frames_in(paths: list[Path]) -> int:
     from training.sim_data import count_frames
 
@@ -200,7 +218,8 @@ def chain(
     common = ["--seed", str(seed), "--set", f"refine_w_anchor={cfg.refine_w_anchor}",
               "--set", f"counterfactual_starts={cfg.counterfactual_starts}",
               "--set", f"counterfactual_tracks={cfg.counterfactual_tracks}",
-              "--set", f"counterfactual_layout={cfg.layout}"]  # fmt: skip
+              "--set", f"counterfactual_layout={cfg.layout}",
+              "--set", f"w_image={cfg.w_image}"]  # fmt: skip
     imitation = ["--set", f"imitation_steps={cfg.imitation_steps}",
                  "--set", "world_model_steps=0", "--set", "refine_steps=0"]  # fmt: skip
 
@@ -225,7 +244,7 @@ def chain(
         step(f"drive-{tag}-iter{k}", py("-m", "training.sim_data", "drives", "--model",
              str(previous / "policy.onnx"), "--out", str(drives), "--tracks", cfg.train_tracks,
              "--layouts", cfg.layout, "--seconds", str(cfg.drive_seconds), "--jobs",
-             str(cfg.jobs), *(["--explore"] if cfg.drive_explore else [])),
+             str(cfg.jobs), *explore_args(cfg)),
              drives / ".done")  # fmt: skip
         data = [*data, drives]
         run = runs / f"dirl{k}"

@@ -255,3 +255,16 @@ def test_footprint_is_the_body_rectangle():
     assert min(xs) == pytest.approx(1.0 - P.rear_overhang)
     assert max(xs) == pytest.approx(1.0 - P.rear_overhang + P.length)
     assert max(ys) - min(ys) == pytest.approx(P.width)
+
+
+def test_steering_the_other_way_mirrors_the_path():
+    """Mirroring a recorded window (training/augment.mirror_batch negates the steering) is only
+    physical if the car turns the same either way: −s must trace +s's path mirrored, slides
+    and lags included."""
+    for steering in (0.3, 1.0):
+        _, rs = _drive(CarState(0, 0, 0), 3.0, steering, 0.8)
+        _, ls = _drive(CarState(0, 0, 0), 3.0, -steering, 0.8)
+        assert ls[50].yaw > 0.05, "−1 turns left (counter-clockwise)"
+        for a, b in zip(rs, ls, strict=True):
+            assert (a.x, a.v) == pytest.approx((b.x, b.v), abs=1e-9)
+            assert (a.y, a.yaw) == pytest.approx((-b.y, -b.yaw), abs=1e-9)

@@ -181,3 +181,17 @@ def test_top_down_map():
     assert like(img, RED, lo=0.6, hi=1.15, tol=10).sum() > 50
     assert np.array_equal(img, m.draw([(CX, CY - 1.5, 0.0)]))
     assert not np.all(m.draw() == m.CAR_COLOUR, axis=-1).any()
+
+
+def test_a_mirrored_scene_renders_as_the_mirrored_image():
+    """training/augment.mirror_batch flips frames left↔right: that is only a frame the car could
+    have seen if the camera is left-right symmetric. An obstacle 0.25 m left of the heading line
+    and its mirror 0.25 m right, seen from the arena's centre line (fences equally far): the
+    obstacle's pixels in one image are the other's, flipped."""
+    masks = []
+    for side in (1.0, -1.0):
+        track = circle_track(obstacles=(Obstacle(CX + 0.6, CY + side * 0.25, 0.12, 0.25, RED),))
+        masks.append(like(Renderer(track).render(CX - 0.3, CY, 0.0), RED))
+    left, right = masks
+    assert left.sum() > 100 and not left[:, 48:].any(), "an obstacle on the left is on the left"
+    assert np.array_equal(left, right[:, ::-1]), f"{(left != right[:, ::-1]).sum()} pixels differ"

@@ -279,3 +279,37 @@ def test_training_stops_before_a_record_whose_crc_fails(tmp_path, caplog):
         (loaded,) = load_episodes(copy)
     assert loaded.n == 5, "cut before the damaged record"
     assert "fails its CRC" in caplog.text and damaged.name in caplog.text
+
+
+def test_mirroring_flips_images_and_steering_and_nothing_else():
+    from training.augment import mirror_batch
+
+    rng = np.random.default_rng(0)
+    batch = {
+        "image": torch.from_numpy(rng.integers(0, 256, (64, 8, 8, 3), dtype=np.uint8)),
+        "future_images": torch.from_numpy(rng.integers(0, 256, (64, 4, 6, 6, 3), dtype=np.uint8)),
+        "actions": torch.from_numpy(rng.uniform(-1, 1, (64, 4, 2)).astype(np.float32)),
+        "expert_actions": torch.from_numpy(rng.uniform(-1, 1, (64, 4, 2)).astype(np.float32)),
+        "speed": torch.rand(64, 1),
+        "collisions": torch.randint(0, 2, (64, 4)).float(),
+    }
+    out = mirror_batch(batch, torch.Generator().manual_seed(5))
+    again = mirror_batch(batch, torch.Generator().manual_seed(5))
+    flipped = out["actions"][:, 0, 0] != batch["actions"][:, 0, 0]
+    assert 16 < int(flipped.sum()) < 48, "about half the samples"
+    for k in batch:
+        assert torch.equal(out[k], again[k]), "deterministic in the generator"
+    for i in range(64):
+        f = bool(flipped[i])
+        want = batch["image"][i].flip(1) if f else batch["image"][i]
+        assert torch.equal(out["image"][i], want)
+        want = batch["future_images"][i].flip(2) if f else batch["future_images"][i]
+        assert torch.equal(out["future_images"][i], want)
+        for key in ("actions", "expert_actions"):
+            sign = -1.0 if f else 1.0
+            assert torch.equal(out[key][i, :, 0], sign * batch[key][i, :, 0])
+            assert torch.equal(out[key][i, :, 1], batch[key][i, :, 1]), "throttle kept"
+    assert torch.equal(out["speed"], batch["speed"])
+    assert torch.equal(out["collisions"], batch["collisions"])
+    same = mirror_batch(batch, torch.Generator().manual_seed(5), share=0.0)
+    assert all(torch.equal(same[k], batch[k]) for k in batch)

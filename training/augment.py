@@ -57,3 +57,39 @@ def augment_images(
     x = images.reshape(b, -1, 3).to(torch.float32)
     y = torch.baddbmm(offset[:, None, None].expand(b, 1, 3), x, m.transpose(1, 2))
     return y.clamp_(0, 255).round_().to(torch.uint8).reshape(images.shape)
+
+
+def mirror_batch(batch: dict, generator: torch.Generator, share: float = 0.5) -> dict:
+    """Mirror a random `share` of the samples left↔right: every image (the frame and, for the
+    world model, its future frames) flipped across its vertical axis and every steering negated
+    (−1 is full left), throttle, speed and collision labels unchanged.
+
+    Why: the car, camera and physics are left-right symmetric, so a mirrored window is a window
+    the car could have recorded. On one track driven one way round the policy's steering is
+    tied to the place (mostly one way on the bends), and a world model can learn "steering
+    this way is safe" from where the car was instead of from what it saw; in the mirrored
+    copy the same steering meets the opposite scene, so only what the image shows can explain
+    the outcome. Deterministic in `generator`.
+    """
+    b = batch["image"].shape[0]
+    flip = torch.rand(b, generator=generator) < share
+    if not bool(flip.any()):
+        return batch
+    out = dict(batch)
+    sign = torch.where(flip, -1.0, 1.0)
+
+    def images(x: torch.Tensor, width_dim: int) -> torch.Tensor:
+        picked = flip.view(b, *([1] * (x.dim() - 1))).to(x.device)
+        return torch.where(picked, x.flip(width_dim), x)
+
+    def steering(a: torch.Tensor) -> torch.Tensor:
+        s = sign.to(a.device, a.dtype).view(b, *([1] * (a.dim() - 2)))
+        return torch.stack((a[..., 0] * s, a[..., 1]), dim=-1)
+
+    out["image"] = images(batch["image"], 2)  # (B, h, w, 3)
+    if "future_images" in batch:
+        out["future_images"] = images(batch["future_images"], 3)  # (B, H, P, P, 3)
+    for key in ("actions", "expert_actions"):
+        if key in batch:
+            out[key] = steering(batch[key])
+    return out

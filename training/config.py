@@ -44,6 +44,7 @@ class IterateConfig:
     augment_saturation: float = 0.3  # max relative saturation change
     augment_brightness: float = 0.2  # max brightness shift, share of full scale
     augment_contrast: float = 0.2  # max relative contrast change
+    mirror_imitation: bool = False  # mirror half of each batch, steering negated (augment.py)
     # -- stage 2: world model (evidential image/speed regression + collision classification)
     world_model_steps: int = 30000  # optimizer steps (our choice)
     world_model_batch_size: int = 32  # global batch (paper: 32)
@@ -53,6 +54,9 @@ class IterateConfig:
     w_collision: float = 1.0  # weight of L_collision in L_w
     collision_weight: float = 0.0  # weight of the collision class; 0 = n_safe/n_collision
     evidential_lambda: float = 0.01  # λ of the evidential regulariser |y−γ|(2ν+α)
+    # mirror half of each batch left↔right, steering negated (training/augment.mirror_batch):
+    # steering tied to the place on a one-way track cannot stand in for what the image shows
+    mirror_world_model: bool = False
     # -- stage 3: refinement in imagination
     refine_steps: int = 5000  # optimizer steps (our choice)
     refine_batch_size: int = 36  # global batch of start frames (paper: 36)

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
-from training.augment import augment_images
+from training.augment import augment_images, mirror_batch
 from training.held_out import held_out
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 
@@ -78,6 +78,11 @@ def train_imitation(
                                    brightness=cfg.augment_brightness,
                                    contrast=cfg.augment_contrast)  # fmt: skip
             batch = {**batch, "image": image.to(batch["image"].device)}
+        if cfg.mirror_imitation:
+            gen = torch.Generator().manual_seed(
+                (cfg.seed * 1_000_003 + step) * 1013 + ctx.dist.rank
+            )
+            batch = mirror_batch(batch, gen)
         return imitation_loss(model, batch)
 
     val_fn = None

@@ -90,14 +90,17 @@ def drive_jobs(
     *,
     intervene: bool,
     explore: bool = False,
+    sets: tuple[str, ...] = (),
 ) -> list[Job]:
     """The policy drives each placement; with `intervene` the expert takes over before a crash,
     without it every crash is recorded (labelled, then the auto-reset) for the world model.
     `explore`: the loop's noise injection perturbs the policy's commands too (noise.during_auto),
-    so the crashes and near misses come from varied actions, not only the policy's own."""
+    so the crashes and near misses come from varied actions, not only the policy's own.
+    `sets`: `carrt drive --set` overrides for every placement (noise.amplitude=0.8, …)."""
     jobs = []
     take_over = ("--expert-intervene",) if intervene else ()
     take_over += ("--set", "noise.during_auto=true") if explore else ()
+    take_over += tuple(arg for item in sets for arg in ("--set", item))
     for i, track in enumerate(tracks):
         layout = layout_for(i, layouts)
         argv = ("drive", "--sim", "--autopilot", *take_over, "--model", str(model),
@@ -178,6 +181,10 @@ def main(argv: list[str] | None = None) -> int:
                 "--explore", action="store_true",
                 help="noise injection on the policy's commands half of the time (varied actions)",
             )  # fmt: skip
+            p.add_argument(
+                "--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
+                help="a `carrt drive --set` for every placement, e.g. noise.amplitude=0.8",
+            )  # fmt: skip
     args = parser.parse_args(argv)
     try:
         out = Path(args.out)
@@ -191,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
             intervene = args.what == "interventions"
             jobs = drive_jobs(
                 out, Path(args.model), tracks, layouts, args.seconds, intervene=intervene,
-                explore=getattr(args, "explore", False),
+                explore=getattr(args, "explore", False), sets=tuple(getattr(args, "sets", ())),
             )  # fmt: skip
         out.mkdir(parents=True, exist_ok=True)
         run_jobs(jobs, max(1, args.jobs), args.what)

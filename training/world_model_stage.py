@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from training.augment import mirror_batch
 from training.held_out import held_out
 from training.losses import evidential_classification_loss, evidential_regression_loss
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
@@ -120,6 +121,11 @@ def train_world_model(
     }
 
     def loss_fn(model: nn.Module, batch: dict, step: int):
+        if cfg.mirror_world_model:  # seeded by (seed, step, rank): a resumed run draws the same
+            gen = torch.Generator().manual_seed(
+                (cfg.seed * 1_000_003 + step) * 1013 + ctx.dist.rank
+            )
+            batch = mirror_batch(batch, gen)
         return world_model_loss(model, batch, targets, **weights)
 
     val_fn = None
