@@ -41,6 +41,16 @@ def test_settings_parse_tuples_and_refuse_unknown_fields():
         dirl_sim.parse(["--set", "drive_explore=maybe"])
 
 
+def test_the_drives_explore_with_the_configured_noise():
+    cfg = dirl_sim.parse(["--set", "explore_amplitude=0.6", "--set", "explore_hold_s=0.4,1.2"])
+    args = dirl_sim.explore_args(cfg)
+    assert args[0] == "--explore"
+    sets = dict(a.split("=") for a in args[2::2])
+    assert sets == {"noise.fraction": "0.8", "noise.amplitude": "0.6",
+                    "noise.hold_min_s": "0.4", "noise.hold_max_s": "1.2"}  # fmt: skip
+    assert dirl_sim.explore_args(dirl_sim.parse(["--set", "drive_explore=false"])) == []
+
+
 def test_the_plan_counts_every_step_the_study_runs():
     cfg = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
                           "iterations=2", "--set", "robustness_iterations=1"])  # fmt: skip

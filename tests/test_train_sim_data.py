@@ -50,3 +50,39 @@ def test_more_placements_than_a_worker_runs_all_finish(tmp_path, monkeypatch):
     sim_data.run_jobs(jobs, 2, "test")
     assert all(job.marker.exists() for job in jobs)
     assert all(job.log.read_text().startswith("carrt") for job in jobs)
+
+
+def test_exploration_drives_carry_the_noise_settings_to_every_placement(tmp_path):
+    """The DIRL study's drives (bench/dirl_sim.explore_args): --explore plus `carrt drive --set`
+    noise settings, so the world model sees steering far from the policy's for most of the
+    time, which the paper's ±0.3 half the time did not give it."""
+    import numpy as np
+    from onnx_models import build_policy
+
+    from carrt.interfaces import Mode
+
+    model = build_policy(tmp_path / "gentle.onnx", steering=0.0, throttle=(0.3, 0.0))
+    out = tmp_path / "drives"
+    argv = ["drives", "--model", str(model), "--out", str(out), "--tracks", "1000-1001",
+            "--layouts", "empty", "--seconds", "20", "--jobs", "2", "--explore",
+            "--set", "noise.fraction=0.8", "--set", "noise.amplitude=0.8",
+            "--set", "noise.period_s=2.0"]  # fmt: skip
+    assert sim_data.main(argv) == 0
+    steps = np.concatenate([read_episode(p).steps for p in list_episodes([str(out)])])
+    auto = steps["mode"] == Mode.AUTO
+    noisy = steps["noise"].astype(bool) & auto
+    assert auto.sum() > 200 and 0.65 < noisy.sum() / auto.sum() < 0.95
+    delta = np.abs(steps["executed_action"] - steps["policy_action"])[noisy]
+    assert 0.5 < delta.max() <= 0.8 + 1e-6, "the amplitude reached the car, not the default 0.3"
+    bad = [
+        "drives",
+        "--model",
+        str(model),
+        "--out",
+        str(out),
+        "--tracks",
+        "1002",
+        "--set",
+        "noise.fraction=2",
+    ]
+    assert sim_data.main(bad) != 0
