@@ -245,6 +245,36 @@ def test_the_anchor_keeps_refinement_near_the_policy_it_started_from(data, train
     assert logged == {0.0: False, 100.0: True}
 
 
+def test_the_imitation_term_keeps_refinement_near_the_demonstrations(data, trained_world_model):
+    """refine_w_imitation (our second safeguard, off in the paper's form): from the same
+    imitation-trained policy, same seed and steps, no anchor; without the term refinement moves
+    the policy away from the person's a* on the demonstrations, with it the policy drifts less
+    than half as far, and the run logs the term."""
+    _, norm, windows, free = data
+    batch = take(free, range(min(len(free), 64)))
+    torch.manual_seed(0)
+    imitated, _ = models(norm)
+    train_imitation(tiny(imitation_steps=60, imitation_batch_size=16, imitation_lr=3e-3),
+                    imitated, free)  # fmt: skip
+    imitated.eval()
+    with torch.no_grad():
+        start = float(imitation_loss(imitated, batch)[0])
+    drift, logged = {}, {}
+    for weight in (0.0, 100.0):
+        torch.manual_seed(0)
+        policy = copy.deepcopy(imitated)
+        world_model = copy.deepcopy(trained_world_model[0])
+        cfg = tiny(refine_steps=30, refine_batch_size=16, refine_lr=3e-3, refine_w_anchor=0.0,
+                   refine_w_imitation=weight)  # fmt: skip
+        result = train_refine(cfg, policy, world_model, windows, norm, demonstrations=free)
+        with torch.no_grad():
+            drift[weight] = float(imitation_loss(policy, batch)[0]) - start
+        logged[weight] = "imitation_l1" in result.history[-1]
+    assert drift[0.0] > 0.02, drift  # refinement alone does pull away from the demonstrations
+    assert drift[100.0] < 0.5 * drift[0.0], drift
+    assert logged == {0.0: False, 100.0: True}
+
+
 def test_refinement_gradient_reaches_the_actions_through_the_frozen_world_model(data):
     _, norm, windows, _ = data
     _, world_model = models(norm)

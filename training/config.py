@@ -70,6 +70,9 @@ class IterateConfig:
     # (docs/dirl_anchor_validation.json: without it refinement took completion 0.84 → 0.18);
     # 0: the paper's form
     refine_w_anchor: float = 10.0
+    # safeguard: weight of imitation's L1 on demonstration frames during refinement (refine.py);
+    # 0: off (the paper's form)
+    refine_w_imitation: float = 0.0
     # -- the world model's counterfactual check (simulator only: training/counterfactual.py)
     counterfactual_starts: int = 0  # start states per placement; 0: off (a real car's data)
     counterfactual_layout: str = "hard"  # simulator layout of the held-out placements
@@ -107,7 +110,7 @@ class IterateConfig:
             "imitation_steps", "world_model_steps", "refine_steps", "ckpt_every", "eval_every",
             "stop_after", "num_workers", "collision_weight", "threads", "intervention_weight",
             "augment_hue", "augment_saturation", "augment_brightness", "augment_contrast",
-            "counterfactual_starts", "refine_w_anchor",
+            "counterfactual_starts", "refine_w_anchor", "refine_w_imitation",
         ]  # fmt: skip
         for name in non_negative:
             if getattr(self, name) < 0:

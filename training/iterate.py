@@ -267,9 +267,14 @@ class StageData:
         if len(self.windows) == 0:
             raise UsageError("no training windows: every training episode has fewer than 2 steps")
 
+    def demonstrations(self) -> ImitationDataset:
+        """The training windows a person drove (imitation's targets; refinement's safeguard)."""
+        iw, h = self.cfg.intervention_weight, self.horizon
+        return ImitationDataset(self.train_eps, h, intervention_weight=iw, store=self.store)
+
     def imitation(self):
         iw, h = self.cfg.intervention_weight, self.horizon
-        free = ImitationDataset(self.train_eps, h, intervention_weight=iw, store=self.store)
+        free = self.demonstrations()
         val = None
         if self.val_eps:
             val = ImitationDataset(self.val_eps, h, intervention_weight=iw, store=self.val_store)
@@ -292,9 +297,10 @@ def train_stage(stage, cfg, policy, world_model, data: StageData, norm, ctx, res
             cfg, world_model, data.windows, norm, ctx, collision_weight=weight,
             policy=policy, resume=resume, val_dataset=data.val_windows,
         )  # fmt: skip
+    demonstrations = data.demonstrations() if cfg.refine_w_imitation else None
     return train_refine(
         cfg, policy, world_model, data.windows, norm, ctx,
-        resume=resume, val_dataset=data.val_windows,
+        resume=resume, val_dataset=data.val_windows, demonstrations=demonstrations,
     )  # fmt: skip
 
 

@@ -14,6 +14,13 @@ and each uncertainty is clipped at `uncertainty_clip` because u = (1+1/ν)β/(α
 Safeguard (ours, not the paper's): `refine_w_anchor`·Σ_t |μ_t − μ⁰_t|² keeps the plan near the
 policy refinement started from (μ⁰, frozen), so a world model that is wrong about some actions
 cannot drag the policy far from what it learned to do on real data. 0 is the paper's pure form.
+The anchor measures against the policy THIS refinement started from, so over iterations the
+drift adds up. A second safeguard, `refine_w_imitation`·(imitation's L1 on a batch of the
+demonstrations, drawn each step), keeps μ near what the person did on the frames where they
+drove: refinement may move the plan only where the world model's gain beats that cost. Why:
+the objective rewards speed without collisions, not progress along the track, and in the
+simulator (where the infield has no wall) refined policies learned to circle off the track at
+full speed, collision-free; the demonstrations are what says "this is the track".
 
 Frozen means eval() + requires_grad False (WorldModel.freeze()): no parameter moves and the
 BatchNorm running statistics stay those learned on real data — in train mode the imagined
@@ -35,6 +42,7 @@ import torch
 from torch import nn
 
 from training.held_out import held_out
+from training.imitation import imitation_loss
 from training.models import sample_actions
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 
@@ -85,6 +93,14 @@ def noise(shape, seed: int, step: int, rank: int, device) -> torch.Tensor:
     return torch.randn(shape, generator=gen).to(device)
 
 
+def demonstration_batch(demos, cfg: IterateConfig, step: int, ctx: RunContext) -> dict:
+    """refine_batch_size demonstration windows, drawn by (seed, step, rank): a resumed run
+    draws the same ones."""
+    gen = torch.Generator().manual_seed((cfg.seed * 1_000_003 + step) * 1019 + ctx.dist.rank)
+    items = torch.randint(len(demos), (cfg.refine_batch_size,), generator=gen).numpy()
+    return {k: v.to(ctx.dist.device) for k, v in demos.get_batch(items).items()}
+
+
 def uncertainty_weight(cfg: IterateConfig) -> float:
     return 0.0 if cfg.no_uncertainty else cfg.refine_w_uncertainty
 
@@ -99,8 +115,10 @@ def train_refine(
     *,
     resume: dict | None = None,
     val_dataset=None,
+    demonstrations=None,
 ) -> StageResult:
-    """Refine `policy` in place against the frozen `world_model` from the dataset's start frames."""
+    """Refine `policy` in place against the frozen `world_model` from the dataset's start frames;
+    `demonstrations` (an ImitationDataset) feeds the `refine_w_imitation` term."""
     ctx = ctx or RunContext()
     device = ctx.dist.device
     policy.to(device)
@@ -112,6 +130,9 @@ def train_refine(
     # The policy as refinement found it (imitation's, or the previous iteration's), frozen:
     # the anchor term measures every step's plan against it.
     start = copy.deepcopy(policy).eval().requires_grad_(False) if cfg.refine_w_anchor else None
+    demos = demonstrations if cfg.refine_w_imitation and demonstrations is not None else None
+    if demos is not None and len(demos) == 0:
+        demos = None  # nothing a person drove in this data: the term has nothing to hold on to
 
     def loss_fn(model: nn.Module, batch: dict, step: int):
         eps = noise((len(batch["speed"]), horizon, 2), cfg.seed, step, ctx.dist.rank, device)
@@ -126,6 +147,10 @@ def train_refine(
             anchor = anchor_penalty(mu, mu_start)
             loss = loss + cfg.refine_w_anchor * anchor
             metrics["anchor"] = anchor.detach()
+        if demos is not None:
+            bc, _ = imitation_loss(model.policy, demonstration_batch(demos, cfg, step, ctx))
+            loss = loss + cfg.refine_w_imitation * bc
+            metrics["imitation_l1"] = bc.detach()
         return loss, metrics
 
     val_fn = None
