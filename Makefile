@@ -55,8 +55,8 @@ test-py310: $(STAMP310) core
 bench: $(STAMP)
 	$(PY) -m bench
 
-# The paper's simulation study, IL against DIRL iterations, -unc and IL at equal frames (about 72 minutes on
-# 2 cores; results in bench/results/dirl_sim/, resumable). `$(PY) -m bench.dirl_sim --quick`
+# The paper's simulation study, IL against DIRL iterations, -unc and IL at equal frames (about
+# 72 minutes on 2 cores; results in bench/results/dirl_sim/, resumable). `$(PY) -m bench.dirl_sim --quick`
 # runs every step in minutes.
 study: $(STAMP)
 	$(PY) -m bench.dirl_sim

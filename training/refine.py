@@ -41,10 +41,11 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
+from training.data import take
 from training.held_out import held_out
 from training.imitation import imitation_loss
 from training.models import sample_actions
-from training.trainer import RunContext, StageResult, StageSpec, run_stage
+from training.trainer import RunContext, StageResult, StageSpec, per_rank_batch, run_stage
 
 if TYPE_CHECKING:
     from training.config import IterateConfig
@@ -88,17 +89,22 @@ def refine_objective(
     return sequence_objective(imagined, w_speed, w_collision, w_uncertainty).mean(), metrics
 
 
+def step_generator(seed: int, step: int, rank: int, stream: int) -> torch.Generator:
+    """A generator fixed by (seed, step, rank): a resumed run draws what the uninterrupted one
+    did. `stream` (a prime) keeps the ε draws and the demonstration draws independent."""
+    return torch.Generator().manual_seed((seed * 1_000_003 + step) * stream + rank)
+
+
 def noise(shape, seed: int, step: int, rank: int, device) -> torch.Tensor:
-    gen = torch.Generator().manual_seed((seed * 1_000_003 + step) * 1009 + rank)
-    return torch.randn(shape, generator=gen).to(device)
+    return torch.randn(shape, generator=step_generator(seed, step, rank, 1009)).to(device)
 
 
 def demonstration_batch(demos, cfg: IterateConfig, step: int, ctx: RunContext) -> dict:
-    """refine_batch_size demonstration windows, drawn by (seed, step, rank): a resumed run
-    draws the same ones."""
-    gen = torch.Generator().manual_seed((cfg.seed * 1_000_003 + step) * 1019 + ctx.dist.rank)
-    items = torch.randint(len(demos), (cfg.refine_batch_size,), generator=gen).numpy()
-    return {k: v.to(ctx.dist.device) for k, v in demos.get_batch(items).items()}
+    """This rank's share of refine_batch_size demonstration windows, drawn by (seed, step, rank)."""
+    gen = step_generator(cfg.seed, step, ctx.dist.rank, 1019)
+    size = per_rank_batch(cfg.refine_batch_size, ctx.dist)
+    items = torch.randint(len(demos), (size,), generator=gen).tolist()
+    return {k: v.to(ctx.dist.device) for k, v in take(demos, items).items()}
 
 
 def uncertainty_weight(cfg: IterateConfig) -> float:
