@@ -54,8 +54,9 @@ def test_the_drives_explore_with_the_configured_noise():
 def test_the_plan_counts_every_step_the_study_runs():
     cfg = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
                           "iterations=2", "--set", "robustness_iterations=1"])  # fmt: skip
-    # demos 2×2; σ 0 per seed: IL 2 + 2 iterations × 3 + -unc 2 + IL equal 2 = 12; σ 1: 2+3+2
-    assert dirl_sim.planned_steps(cfg) == 4 + 2 * 12 + 7
+    # demos 2×2; σ 0 per seed: IL 2 + 2 iterations × (drive, train, eval + IL at its frames
+    # train, eval) + -unc 2 = 14; σ 1: IL 2 + 1 iteration × 5 = 7
+    assert dirl_sim.planned_steps(cfg) == 4 + 2 * 14 + 7
 
 
 def test_top_up_takes_whole_episodes_until_the_frames_are_reached(sim_episodes):
