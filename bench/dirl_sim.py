@@ -42,7 +42,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.dirl_table import plot, table
+from bench.dirl_table import comparison, plot, table
 from carrt.errors import UserError
 from carrt.settings import apply_sets
 
@@ -330,7 +330,10 @@ def main(argv: list[str] | None = None) -> int:
             chain(cfg, step, sigma, seed, iterations, rows)
         except NotRun as exc:  # --report: this chain stops at its first unfinished step
             missing.append(str(exc))
-    report = table(rows)
+    report = (
+        table(rows) + "\n\nPaired by seed (model − baseline, each seed's mean over the "
+        "held-out placements; mean ± std over seeds):\n\n" + comparison(rows)
+    )
     if missing:
         report += f"\n\nNot finished yet (--report): {', '.join(missing)}."
     results = {"config": dataclasses.asdict(cfg), "rows": rows, "complete": not missing,

@@ -86,6 +86,25 @@ def test_table_pools_runs_over_seeds_per_model_and_noise():
     assert any(line.startswith("| 0.5 | IL | 1 |") for line in lines)
 
 
+def test_comparison_pairs_each_dirl_row_with_its_baselines_seed_by_seed():
+    rows = [
+        _row("IL", 0, [0.2, 0.4]), _row("IL", 1, [0.6, 0.8]),
+        _row("DIRL iter 1", 0, [0.5, 0.5], iteration=1),
+        _row("DIRL iter 1", 1, [0.5, 0.5], iteration=1),
+        _row("DIRL -unc iter 1", 0, [0.4, 0.4], iteration=1),
+        _row("IL, frames of iter 1", 0, [0.9, 0.9], iteration=1),
+    ]  # fmt: skip
+    lines = dirl_table.comparison(rows).splitlines()
+    against_il = next(line for line in lines if "| DIRL iter 1 | IL |" in line)
+    # seed 0: 0.5 − 0.3 = +0.20, seed 1: 0.5 − 0.7 = −0.20; mean 0 ± 0.20 over the two seeds
+    assert "| 2 | +0.20, -0.20 | +0.00 ± 0.20 |" in against_il
+    more_data = next(line for line in lines if "| IL, frames of iter 1 |" in line)
+    assert "| 1 | -0.40 | -0.40 |" in more_data, "only seeds both rows have are paired"
+    unc = next(line for line in lines if line.startswith("| 0 | DIRL -unc iter 1 |"))
+    assert "| DIRL iter 1 | 1 | -0.10 |" in unc
+    assert not any("| IL | IL" in line for line in lines), "IL rows have no baseline"
+
+
 def test_plot_writes_completion_against_frames(tmp_path):
     rows = [_row("IL", 0, [0.2]), _row("DIRL iter 1", 0, [0.3], frames=1500, iteration=1),
             _row("DIRL -unc iter 1", 0, [0.1], frames=1500, iteration=1)]  # fmt: skip
