@@ -55,9 +55,9 @@ test-py310: $(STAMP310) core
 bench: $(STAMP)
 	$(PY) -m bench
 
-# The paper's simulation study, IL against DIRL iterations, -unc and IL at equal frames (about
-# 72 minutes on 2 cores; results in bench/results/dirl_sim/, resumable). `$(PY) -m bench.dirl_sim --quick`
-# runs every step in minutes.
+# The paper's simulation study, IL against DIRL iterations, -unc and IL at each iteration's
+# frames (about 2 h 10 min on 2 cores: the σ 0 part measured 115 min; results in
+# bench/results/dirl_sim/, resumable). `$(PY) -m bench.dirl_sim --quick` runs every step in minutes.
 study: $(STAMP)
 	$(PY) -m bench.dirl_sim
 
