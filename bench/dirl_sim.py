@@ -42,7 +42,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.dirl_table import comparison, plot, table
+from bench.dirl_table import comparison, il_at_frames_of, plot, table
 from carrt.errors import UserError
 from carrt.settings import apply_sets
 
@@ -245,6 +245,7 @@ def chain(
     step(f"train-{tag}-il", iterate_cmd(cfg, [expert], il, *common, *imitation), il / ".done")
     row("IL", 0, il, [expert])
     data, previous = [expert], il
+    expert_frames = frames_in([expert])  # read once: every iteration tops up against it
     for k in range(1, iterations + 1):
         drives = Path(cfg.out) / "data" / f"drives-{tag}-iter{k}"
         step(f"drive-{tag}-iter{k}", py("-m", "training.sim_data", "drives", "--model",
@@ -269,11 +270,11 @@ def chain(
             row("DIRL -unc iter 1", 1, unc, data)
         # Imitation on as many frames as this iteration had, from the second demonstration
         # pool (whole episodes in name order, so iteration k's set extends iteration k-1's).
-        equal = [expert, *top_up(extra, frames_in(data) - frames_in([expert]))]
+        equal = [expert, *top_up(extra, frames_in(data) - expert_frames)]
         il_eq = runs / f"il-equal{k}"
         step(f"train-{tag}-il-equal{k}", iterate_cmd(cfg, equal, il_eq, *common, *imitation),
              il_eq / ".done")  # fmt: skip
-        row(f"IL, frames of iter {k}", k, il_eq, equal)
+        row(il_at_frames_of(k), k, il_eq, equal)
         previous = run
     return rows
 

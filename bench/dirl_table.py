@@ -55,13 +55,19 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def il_at_frames_of(k: int | str) -> str:
+    """The row name of imitation trained on as many frames as DIRL iteration k had (the study
+    names its rows with it; the comparison finds them by it)."""
+    return f"IL, frames of iter {k}"
+
+
 def baselines(model: str) -> list[str]:
     """What a model is compared with, seed by seed: the paper's questions."""
     if model.startswith("DIRL -unc iter "):
         return [model.replace("DIRL -unc", "DIRL")]  # does the uncertainty term matter?
     if model.startswith("DIRL iter "):
         k = model.removeprefix("DIRL iter ")
-        return ["IL", f"IL, frames of iter {k}"]  # better than its start; than more data?
+        return ["IL", il_at_frames_of(k)]  # better than its start; than more data?
     return []
 
 
