@@ -86,6 +86,13 @@ class StudyConfig:
     # refinement. 50 was measured on validation placements 200-219 (seed 0, iteration 1 → 2:
     # completion 0.49 without it, 0.60 at 10, 0.68 at 50, from 0.73); 0: off.
     refine_w_imitation: float = 50.0
+    # The third safeguard: refinement keeps a candidate every `refine_candidates_every` steps and
+    # the policy it started from is one too; each is driven on validation placements and the best
+    # is the iteration's policy (training/select_by_driving.py). False: the last step's policy.
+    select_by_driving: bool = True
+    refine_candidates_every: int = 100
+    select_tracks: str = "200-219"  # validation placements: neither trained on nor evaluated
+    select_seconds: float = 30.0  # simulated s per validation placement and candidate
     eval_seconds: float = 60.0  # simulated seconds per held-out placement (a lap is ~7 s)
     threads: int = 2  # torch threads
     jobs: int = 2  # simulator processes
@@ -100,7 +107,8 @@ QUICK = dict(
     train_tracks="1000", extra_tracks="1001", eval_tracks="100", counterfactual_tracks="200",
     counterfactual_starts=2, expert_episodes=2, demo_noise=(0.0, 0.5), iterations=2,
     drive_seconds=5.0, imitation_steps=30, world_model_steps=30, world_model_steps_next=10,
-    refine_steps=10, eval_seconds=10.0,
+    refine_steps=10, eval_seconds=10.0, refine_candidates_every=5, select_tracks="200",
+    select_seconds=5.0,
 )  # fmt: skip
 
 
@@ -196,14 +204,32 @@ def demonstrations(cfg: StudyConfig, step: StudyStep, sigma: float, tracks: str,
     return data
 
 
-def evaluate(cfg: StudyConfig, step: StudyStep, name: str, run: Path) -> dict:
-    """`carrt eval` of the run's policy on the held-out placements (one simulator seed)."""
+def evaluate(cfg: StudyConfig, step: StudyStep, name: str, run: Path, policy: Path) -> dict:
+    """`carrt eval` of the run's policy (in `policy`: the run itself, or the policy chosen by
+    driving) on the held-out placements (one simulator seed)."""
     result = run / "eval.json"
-    step(f"eval-{name}", py("-m", "carrt", "eval", "--model", str(run / "policy.onnx"),
+    step(f"eval-{name}", py("-m", "carrt", "eval", "--model", str(policy / "policy.onnx"),
          "--layout", cfg.layout, "--tracks", cfg.eval_tracks, "--seconds",
          str(cfg.eval_seconds), "--seeds", "0", "--jobs", str(cfg.jobs), "--json", str(result)),
          run / ".done-eval")  # fmt: skip
     return json.loads(result.read_text())
+
+
+def select(cfg: StudyConfig, step: StudyStep, name: str, run: Path, start: Path,
+           data: list[Path]) -> Path:  # fmt: skip
+    """The iteration's policy: with select_by_driving, the best of the policy refinement started
+    from and its candidates, driven on the validation placements (OUT run/selected, a run
+    directory the next --init reads); else the run's own last policy."""
+    if not cfg.select_by_driving:
+        return run
+    chosen = run / "selected"
+    candidates = sorted(run.glob("candidates/refine*.pt"), key=lambda p: int(p.stem[6:]))
+    step(f"select-{name}", py("-m", "training.select_by_driving", "--out", str(chosen),
+         "--candidates", f"start={start / 'policy.pt'}", *map(str, candidates),
+         "--episodes", *map(str, data), "--layout", cfg.layout, "--tracks", cfg.select_tracks,
+         "--seconds", str(cfg.select_seconds), "--jobs", str(cfg.jobs),
+         "--keep", str(run / "world_model.pt")), chosen / ".done")  # fmt: skip
+    return chosen
 
 
 def chain(
@@ -220,26 +246,33 @@ def chain(
     runs = Path(cfg.out) / "runs" / tag
     expert = Path(cfg.out) / "data" / f"expert-noise{sigma:g}"
     extra = Path(cfg.out) / "data" / f"extra-noise{sigma:g}"
+    every = cfg.refine_candidates_every if cfg.select_by_driving else 0  # candidates kept
     common = ["--seed", str(seed), "--set", f"refine_w_anchor={cfg.refine_w_anchor}",
               "--set", f"refine_w_imitation={cfg.refine_w_imitation}",
               "--set", f"counterfactual_starts={cfg.counterfactual_starts}",
               "--set", f"counterfactual_tracks={cfg.counterfactual_tracks}",
               "--set", f"counterfactual_layout={cfg.layout}",
-              "--set", f"w_image={cfg.w_image}"]  # fmt: skip
+              "--set", f"w_image={cfg.w_image}",
+              "--set", f"refine_candidates_every={every}"]  # fmt: skip
     imitation = ["--set", f"imitation_steps={cfg.imitation_steps}",
                  "--set", "world_model_steps=0", "--set", "refine_steps=0"]  # fmt: skip
 
-    def row(model: str, iteration: int, run: Path, data: list[Path]) -> None:
-        result = evaluate(cfg, step, f"{tag}-{run.name}", run)
+    def row(model: str, iteration: int, run: Path, data: list[Path], policy: Path | None = None):
+        policy = policy or run
+        result = evaluate(cfg, step, f"{tag}-{run.name}", run, policy)
         metrics = json.loads((run / "metrics.json").read_text())
+        selection = policy / "selection.json"
+        chosen = json.loads(selection.read_text())["chosen"] if selection.is_file() else None
         rows.append({
             "model": model, "iteration": iteration, "demo_noise": sigma, "seed": seed,
             "frames": frames_in(data), "run": str(run), "aggregate": result["aggregate"],
             "runs": result["runs"], "counterfactual": metrics.get("counterfactual"),
+            "chosen": chosen,
         })  # fmt: skip
         agg = result["aggregate"]
         print(f"  [{tag}] {model}: completion {agg['completion_ratio']['mean']:.2f}, "
-              f"{agg['collisions_per_min']['mean']:.1f} collisions/min", flush=True)  # fmt: skip
+              f"{agg['collisions_per_min']['mean']:.1f} collisions/min"
+              + (f" (chosen by driving: {chosen})" if chosen else ""), flush=True)  # fmt: skip
 
     il = runs / "il"
     step(f"train-{tag}-il", iterate_cmd(cfg, [expert], il, *common, *imitation), il / ".done")
@@ -259,7 +292,8 @@ def chain(
         step(f"train-{tag}-dirl{k}", iterate_cmd(cfg, data, run, *common, "--init",
              str(previous), "--set", f"world_model_steps={wm_steps}",
              "--set", f"refine_steps={cfg.refine_steps}"), run / ".done")  # fmt: skip
-        row(f"DIRL iter {k}", k, run, data)
+        policy = select(cfg, step, f"{tag}-dirl{k}", run, previous, data)
+        row(f"DIRL iter {k}", k, run, data, policy)
         if k == 1 and sigma == 0:
             # The same world model and start policy: only the uncertainty term differs.
             unc = runs / "unc1"
@@ -267,7 +301,8 @@ def chain(
                  str(run / "checkpoints" / "world_model.pt"), "--no-uncertainty",
                  "--set", "world_model_steps=0", "--set", f"refine_steps={cfg.refine_steps}"),
                  unc / ".done")  # fmt: skip
-            row("DIRL -unc iter 1", 1, unc, data)
+            unc_policy = select(cfg, step, f"{tag}-unc1", unc, previous, data)
+            row("DIRL -unc iter 1", 1, unc, data, unc_policy)
         # Imitation on as many frames as this iteration had, from the second demonstration
         # pool (whole episodes in name order, so iteration k's set extends iteration k-1's).
         equal = [expert, *top_up(extra, frames_in(data) - expert_frames)]
@@ -275,7 +310,7 @@ def chain(
         step(f"train-{tag}-il-equal{k}", iterate_cmd(cfg, equal, il_eq, *common, *imitation),
              il_eq / ".done")  # fmt: skip
         row(il_at_frames_of(k), k, il_eq, equal)
-        previous = run
+        previous = policy
     return rows
 
 
@@ -283,7 +318,8 @@ def planned_steps(cfg: StudyConfig) -> int:
     chains = [(0.0, s, cfg.iterations) for s in cfg.seeds if 0.0 in cfg.demo_noise]
     chains += [(x, s, cfg.robustness_iterations) for x in cfg.demo_noise if x
                for s in cfg.robustness_seeds]  # fmt: skip
-    per_chain = sum(2 + 5 * k + (2 if sigma == 0 else 0) for sigma, _, k in chains)
+    per_dirl, per_unc = (6, 3) if cfg.select_by_driving else (5, 2)  # + a selection each
+    per_chain = sum(2 + per_dirl * k + (per_unc if sigma == 0 else 0) for sigma, _, k in chains)
     return 2 * len(cfg.demo_noise) + per_chain
 
 

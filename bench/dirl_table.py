@@ -37,8 +37,8 @@ def groups(rows: list[dict]) -> dict[tuple, list[dict]]:
 def table(rows: list[dict]) -> str:
     lines = [
         "| demo noise σ | model | seeds | frames | completion | collisions / min | avg m/s "
-        "| WM collision AUROC | WM rank corr. | WM speed MAE (const.) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| WM collision AUROC | WM rank corr. | WM speed MAE (const.) | chosen by driving |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (sigma, model), rs in groups(rows).items():
         runs = [run for r in rs for run in r["runs"]]
@@ -48,9 +48,11 @@ def table(rows: list[dict]) -> str:
         mae = cell([c.get("speed_mae") for c in checks], ".2f")
         const = cell([c.get("speed_mae_constant") for c in checks], ".2f")
         speed = "—" if mae == "—" else f"{mae} ({const})"
+        # which candidate each seed's selection kept (start: refinement rejected)
+        chosen = ", ".join(r["chosen"] for r in rs if r.get("chosen")) or "—"
         lines.append(
             f"| {sigma:g} | {model} | {len(rs)} | {cell([r['frames'] for r in rs], '.0f')} "
-            f"| {driving} | {world} | {speed} |"
+            f"| {driving} | {world} | {speed} | {chosen} |"
         )
     return "\n".join(lines)
 

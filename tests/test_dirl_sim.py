@@ -7,6 +7,7 @@ step with the tiny profile in minutes and is how the pipeline was checked end to
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -54,9 +55,12 @@ def test_the_drives_explore_with_the_configured_noise():
 def test_the_plan_counts_every_step_the_study_runs():
     cfg = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
                           "iterations=2", "--set", "robustness_iterations=1"])  # fmt: skip
-    # demos 2×2; σ 0 per seed: IL 2 + 2 iterations × (drive, train, eval + IL at its frames
-    # train, eval) + -unc 2 = 14; σ 1: IL 2 + 1 iteration × 5 = 7
-    assert dirl_sim.planned_steps(cfg) == 4 + 2 * 14 + 7
+    # demos 2×2; σ 0 per seed: IL 2 + 2 iterations × (drive, train, select, eval + IL at its
+    # frames train, eval) + -unc 3 (train, select, eval) = 17; σ 1: IL 2 + 1 iteration × 6 = 8
+    assert dirl_sim.planned_steps(cfg) == 4 + 2 * 17 + 8
+    # without the selection by driving, one step less per DIRL row
+    off = dataclasses.replace(cfg, select_by_driving=False)
+    assert dirl_sim.planned_steps(off) == 4 + 2 * 14 + 7
 
 
 def test_top_up_takes_whole_episodes_until_the_frames_are_reached(sim_episodes):
@@ -75,14 +79,14 @@ def test_table_pools_runs_over_seeds_per_model_and_noise():
              "speed_mae_constant": 0.3}  # fmt: skip
     rows = [
         _row("IL", 0, [0.2, 0.4]), _row("IL", 1, [0.2, 0.4]),
-        _row("DIRL iter 1", 0, [0.5], iteration=1, check=check),
+        {**_row("DIRL iter 1", 0, [0.5], iteration=1, check=check), "chosen": "refine200"},
         _row("IL", 0, [0.1], sigma=0.5),
     ]  # fmt: skip
     lines = dirl_table.table(rows).splitlines()
     il = next(line for line in lines if line.startswith("| 0 | IL |"))
-    assert "| 2 |" in il and "0.30 ± 0.10" in il and il.endswith("| — | — | — |")
+    assert "| 2 |" in il and "0.30 ± 0.10" in il and il.endswith("| — | — | — | — |")
     dirl = next(line for line in lines if "DIRL iter 1" in line)
-    assert "| 0.50 |" in dirl and "| 0.90 | 0.40 | 0.10 (0.30) |" in dirl
+    assert "| 0.50 |" in dirl and "| 0.90 | 0.40 | 0.10 (0.30) | refine200 |" in dirl
     assert any(line.startswith("| 0.5 | IL | 1 |") for line in lines)
 
 

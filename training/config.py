@@ -73,6 +73,10 @@ class IterateConfig:
     # safeguard: weight of imitation's L1 on demonstration frames during refinement (refine.py);
     # 0: off (the paper's form)
     refine_w_imitation: float = 0.0
+    # every N refinement steps the policy is also kept as a candidate (OUT/candidates/
+    # refine<step>.pt) so that how far to refine can be chosen by driving
+    # (training/select_by_driving.py); 0: only the final policy
+    refine_candidates_every: int = 0
     # -- the world model's counterfactual check (simulator only: training/counterfactual.py)
     counterfactual_starts: int = 0  # start states per placement; 0: off (a real car's data)
     counterfactual_layout: str = "hard"  # simulator layout of the held-out placements
@@ -111,6 +115,7 @@ class IterateConfig:
             "stop_after", "num_workers", "collision_weight", "threads", "intervention_weight",
             "augment_hue", "augment_saturation", "augment_brightness", "augment_contrast",
             "counterfactual_starts", "refine_w_anchor", "refine_w_imitation",
+            "refine_candidates_every",
         ]  # fmt: skip
         for name in non_negative:
             if getattr(self, name) < 0:

@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
+from training.checkpoint import save_checkpoint
 from training.data import take
 from training.held_out import held_out
 from training.imitation import imitation_loss
@@ -178,7 +179,27 @@ def train_refine(
         },
         resume=resume,
         val_fn=val_fn,
+        after_step=candidate_keeper(cfg, policy, ctx),
     )
+
+
+def candidate_keeper(cfg: IterateConfig, policy: nn.Module, ctx: RunContext):
+    """after_step for run_stage: every `refine_candidates_every` steps, the policy as it is then,
+    as a checkpoint export and `--init` read (OUT/candidates/refine<step>.pt). Why: the imagined
+    objective is not the track (its rank correlation with the true one is ~0.3), so how many
+    steps of it help is decided by driving the candidates (training/select_by_driving.py)."""
+    every = cfg.refine_candidates_every
+    if not every or ctx.ckpt_dir is None or not ctx.dist.is_main:
+        return None
+    folder = ctx.ckpt_dir.parent / "candidates"
+
+    def keep(done: int) -> None:
+        if done % every == 0:
+            fields = {"stage": "refine", "step": done, "optimizer": None, "world_model": None}
+            weights = {"policy": policy.state_dict()}
+            save_checkpoint(folder / f"refine{done}.pt", **{**ctx.common, **fields, **weights})
+
+    return keep
 
 
 @torch.no_grad()

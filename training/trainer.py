@@ -305,11 +305,13 @@ def run_stage(
     checkpoint_fields: Callable[[], dict],
     resume: dict | None = None,
     val_fn: Callable[[], dict[str, float]] | None = None,
+    after_step: Callable[[int], None] | None = None,
 ) -> StageResult:
     """Train `trainable` for spec.steps steps, through `forward` (the module DDP wraps).
 
     checkpoint_fields() returns the stage's model state dicts for a checkpoint; resume is a
-    checkpoint of this stage whose model weights the caller has already loaded.
+    checkpoint of this stage whose model weights the caller has already loaded; after_step(n)
+    runs on every rank once n steps are done (refinement keeps candidates with it).
     """
     params = [p for p in trainable.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=spec.lr)
@@ -364,6 +366,8 @@ def run_stage(
                             ctx.writer.add_scalar(f"{spec.name}/{k}", v, done)
                     bar.set_postfix(loss=f"{scalars['loss']:.4g}", refresh=False)
                 bar.update(1)
+                if after_step is not None:
+                    after_step(done)
                 stop = ctx.budget.spend()
                 interrupted = signals.requested(ctx.dist)
                 periodic = spec.ckpt_every and done % spec.ckpt_every == 0
