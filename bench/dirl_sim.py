@@ -17,12 +17,15 @@ Top to bottom, every step one of the project's own commands (logged under OUT/lo
    collision examples, which the demonstrations hardly hold); the episodes join the data;
    iterate.py --init continues the world model on all of it, refines the policy in imagination
    and scores the world model against the simulator (training/counterfactual.py, placements
-   200-204, never the evaluation ones). DIRL -unc: iteration 1's world model, refinement without
-   the uncertainty term.
+   200-204, never the evaluation ones). Refinement keeps a candidate every 100 steps; each, and
+   the policy refinement started from, is driven on validation placements 200-219 and the best
+   is the iteration's policy (training/select_by_driving.py; select_by_driving=false: the last
+   step's). DIRL -unc: iteration 1's world model, refinement without the uncertainty term,
+   chosen the same way.
 4. IL at equal frames, once per DIRL iteration k: imitation on the demonstrations plus as many
    frames from the second pool as iterations 1..k's drives added, so every DIRL row is compared
    with imitation on (at least) as many frames as it had.
-5. Every policy is driven by `carrt eval` on HELD-OUT placements (100-104 of the `hard` layout,
+5. Every policy is driven by `carrt eval` on HELD-OUT placements (100-124 of the `hard` layout,
    never recorded for training), 60 simulated seconds each with auto-reset: the paper's metrics.
 
 Output: OUT/results.json (a row per model, seed and noise, with its runs and its world model's
@@ -60,7 +63,9 @@ class StudyConfig:
     layout: str = "hard"  # 8 obstacles
     train_tracks: str = "1000-1039"  # demonstrations and DIRL drives
     extra_tracks: str = "1040-1099"  # the second demonstration pool (IL at equal frames)
-    eval_tracks: str = "100-104"  # held out: never recorded, never tuned on
+    # held out: never recorded, never tuned on. 25 placements: on 5 (100-104, until 2026-11-24)
+    # the placements' own spread was as large as the DIRL-IL differences being judged
+    eval_tracks: str = "100-124"
     counterfactual_tracks: str = "200-204"  # held out, for the world model check
     counterfactual_starts: int = 6  # start states per counterfactual placement
     expert_episodes: int = 6  # per training placement, one lap each from a random place

@@ -14,7 +14,7 @@ drive better is rejected. The score is completion − `collision_cost` × collis
 (one collision a minute costs as much as 5 % of a lap at the default); a tie keeps the earlier
 candidate (fewer refinement steps). On a real car the same choice is a person driving the
 candidates; here the simulator does it on placements that are neither trained on nor the
-evaluation ones (the `hard` layout's 100-104 are refused).
+evaluation ones (the `hard` layout's 100-124 are refused).
 
 OUT gets policy.pt and policy.onnx of the chosen candidate (plus each --keep file, so OUT is a
 run directory the next iteration's `--init` reads), candidates/<name>.onnx, selection.json with
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="where the chosen policy goes")
     p.add_argument("--episodes", nargs="+", required=True, help="frames for the export's check")
     p.add_argument("--layout", default="hard")
-    p.add_argument("--tracks", default="200-219", help="validation placements (never 100-104)")
+    p.add_argument("--tracks", default="200-219", help="validation placements (never 100-124)")
     p.add_argument("--seconds", type=float, default=30.0, help="simulated s per placement")
     p.add_argument("--jobs", type=int, default=2, help="simulator processes")
     p.add_argument("--collision-cost", type=float, default=COLLISION_COST)

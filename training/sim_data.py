@@ -18,7 +18,7 @@ Only episodes are training data, as on a real car; the simulator's saved traject
 
 Runs go to a process pool (one process per core); a finished placement leaves a marker, so an
 interrupted call resumes where it stopped. Placements must not overlap the evaluation ones
-(the `hard` layout's 100-104): `parse_tracks` refuses them.
+(the `hard` layout's 100-124): `parse_tracks` refuses them.
 """
 
 from __future__ import annotations
@@ -38,7 +38,9 @@ from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import EXIT_USAGE, UserError
 from carrt.eval_cmd import parse_int_list
 
-EVALUATION_TRACKS = frozenset(range(100, 105))  # held out: never recorded for training
+# Held out, never recorded for training: `carrt eval`'s default 100-104, and 105-124, which the
+# study adds since 5 placements alone judged DIRL against IL by their own noise.
+EVALUATION_TRACKS = frozenset(range(100, 125))
 TASKS_PER_WORKER = 25  # placements a worker process runs before a fresh pool replaces it
 
 
