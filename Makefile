@@ -56,8 +56,8 @@ bench: $(STAMP)
 	$(PY) -m bench
 
 # The paper's simulation study, IL against DIRL iterations, -unc and IL at each iteration's
-# frames (about 2 h 10 min on 2 cores: the σ 0 part measured 115 min; results in
-# bench/results/dirl_sim/, resumable). `$(PY) -m bench.dirl_sim --quick` runs every step in minutes.
+# frames, refinement chosen by driving (about 2 h 40 min on 2 cores, estimated from its
+# parts; results in bench/results/dirl_sim/, resumable). `$(PY) -m bench.dirl_sim --quick` runs every step in minutes.
 study: $(STAMP)
 	$(PY) -m bench.dirl_sim
 
