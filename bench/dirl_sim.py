@@ -228,7 +228,8 @@ def select(cfg: StudyConfig, step: StudyStep, name: str, run: Path, start: Path,
     if not cfg.select_by_driving:
         return run
     chosen = run / "selected"
-    candidates = sorted(run.glob("candidates/refine*.pt"), key=lambda p: int(p.stem[6:]))
+    kept = run.glob("candidates/refine*.pt")  # refine<step>.pt, in step order
+    candidates = sorted(kept, key=lambda p: int(p.stem.removeprefix("refine")))
     step(f"select-{name}", py("-m", "training.select_by_driving", "--out", str(chosen),
          "--candidates", f"start={start / 'policy.pt'}", *map(str, candidates),
          "--episodes", *map(str, data), "--layout", cfg.layout, "--tracks", cfg.select_tracks,

@@ -22,7 +22,7 @@ from carrt.check import run_check
 from carrt.shipped import SHIPPED_MODELS
 from firmware_bridge import messages as m
 from firmware_bridge.link import BoardLink
-from firmware_bridge.link_types import ArmRefused, LinkError
+from firmware_bridge.link_types import LinkError
 from firmware_bridge.virtual import VirtualBoard
 
 
@@ -78,20 +78,6 @@ def simulator_part(out: Path, seconds: float, model: Path = DEMO_POLICY) -> None
          f"{out / 'trajectory.png'}\n")  # fmt: skip
 
 
-def _arm_when_still(link: BoardLink, attempts: int = 3) -> None:
-    """Wait for the wheels to stop, then arm. The board refuses to arm a moving car; on a busy
-    machine the host can see the last telemetry as still while the board already counts a
-    tick, so a "wheels moving" refusal waits for stillness again (at most `attempts` times)."""
-    for attempt in range(attempts):
-        link.wait_until_still()
-        try:
-            link.arm()
-            return
-        except ArmRefused as exc:
-            if "wheels moving" not in str(exc) or attempt == attempts - 1:
-                raise
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m carrt.demo", description=__doc__.split("\n")[0]
@@ -123,7 +109,8 @@ def safety_link_part() -> None:
 
         _say("\ndriving: arm, then steering 0.3 and throttle 0.5 for 1.5 s")
         link.set_command(0.0, 0.0)
-        _arm_when_still(link)
+        link.wait_until_still()
+        link.arm()
         start_ticks = link.telemetry.telemetry.encoder_ticks
         _drive(link, 0.3, 0.5, 1.5)
         tel = link.telemetry.telemetry
@@ -144,7 +131,8 @@ def safety_link_part() -> None:
         _say(f"  clear -> {board.state.name}; arming is a separate step")
 
         _say("\nthe control loop hangs (the link thread keeps sending the last decision)")
-        _arm_when_still(link)
+        link.wait_until_still()
+        link.arm()
         t0 = _drive(link, 0.0, 0.3, 0.3)
         _wait(lambda: board.state == m.State.FAILSAFE)
         _say(
@@ -155,7 +143,8 @@ def safety_link_part() -> None:
         link.clear()
 
         _say("\nthe USB cable is pulled while driving")
-        _arm_when_still(link)
+        link.wait_until_still()
+        link.arm()
         _drive(link, 0.0, 0.4, 0.5)
         board.pull_cable()
         t0 = time.monotonic()

@@ -260,17 +260,20 @@ class BoardLink(ReceivePath):
 
         The board checks 100 ms of stillness itself; waiting a little longer here means the
         arm request that follows is not refused for a tick that was still in flight.
+        Stillness is measured between telemetry frames (their receive times), not on the host's
+        clock: on a busy machine no new frame may arrive for a while, and an old frame's ticks
+        are no evidence that the wheels stopped since.
         """
         deadline = self.clock() + timeout_s
         last_ticks: int | None = None
-        since = self.clock()
+        since = 0.0
         while self.clock() < deadline:
             sample = self._telemetry
             if sample is not None:
                 ticks = sample.telemetry.encoder_ticks
                 if ticks != last_ticks:
-                    last_ticks, since = ticks, self.clock()
-                elif self.clock() - since >= still_s:
+                    last_ticks, since = ticks, sample.received_at
+                elif sample.received_at - since >= still_s:
                     return
             time.sleep(0.005)
         raise LinkError(f"wheels still turning after {timeout_s:.1f} s (encoder keeps ticking)")
