@@ -91,6 +91,11 @@ class StudyConfig:
     # refinement. 50 was measured on validation placements 200-219 (seed 0, iteration 1 → 2:
     # completion 0.49 without it, 0.60 at 10, 0.68 at 50, from 0.73); 0: off.
     refine_w_imitation: float = 50.0
+    # Another safeguard: the world model's gradient on the actions, centred over the batch of starts
+    # (training/refine.py), so refinement cannot shift every plan alike (measured on the
+    # validation placements: uncentred, iteration 2 moved every plan's steering by -0.02 to -0.04
+    # and completion fell by 0.2-0.4 within 100 steps). False: the paper's gradient.
+    refine_center_gradient: bool = True
     # The third safeguard: refinement keeps a candidate every `refine_candidates_every` steps and
     # the policy it started from is one too; each is driven on validation placements and the best
     # is the iteration's policy (training/select_by_driving.py). False: the last step's policy.
@@ -255,6 +260,7 @@ def chain(
     every = cfg.refine_candidates_every if cfg.select_by_driving else 0  # candidates kept
     common = ["--seed", str(seed), "--set", f"refine_w_anchor={cfg.refine_w_anchor}",
               "--set", f"refine_w_imitation={cfg.refine_w_imitation}",
+              "--set", f"refine_center_gradient={str(cfg.refine_center_gradient).lower()}",
               "--set", f"counterfactual_starts={cfg.counterfactual_starts}",
               "--set", f"counterfactual_tracks={cfg.counterfactual_tracks}",
               "--set", f"counterfactual_layout={cfg.layout}",

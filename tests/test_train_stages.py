@@ -201,7 +201,8 @@ def test_refinement_improves_the_objective_and_leaves_the_world_model_untouched(
     frozen = param_digest(world_model)
     policy_before = param_digest(policy)
     # the paper's form (no anchor): the objective itself must move
-    cfg = tiny(refine_steps=40, refine_batch_size=8, refine_lr=3e-4, refine_w_anchor=0.0)
+    cfg = tiny(refine_steps=40, refine_batch_size=8, refine_lr=3e-4, refine_w_anchor=0.0,
+               refine_center_gradient=False)  # fmt: skip
     world_model.eval()
     before = held_out_objective(cfg, policy, world_model, windows, "cpu", limit=64)
     world_model.train()
@@ -273,6 +274,33 @@ def test_the_imitation_term_keeps_refinement_near_the_demonstrations(data, train
     assert drift[0.0] > 0.02, drift  # refinement alone does pull away from the demonstrations
     assert drift[100.0] < 0.5 * drift[0.0], drift
     assert logged == {0.0: False, 100.0: True}
+
+
+def test_a_centred_gradient_changes_plans_per_start_not_all_alike(data, trained_world_model):
+    """refine_center_gradient (our third safeguard, off in the paper's form): the same run with
+    and without it. Uncentred, the world model's average preference moves every plan alike;
+    centred, the batch-mean plan moves far less while the plans still change start by start."""
+    _, norm, windows, _ = data
+    batch = take(windows, range(0, len(windows), max(1, len(windows) // 64)))
+    common, individual = {}, {}
+    for flag in (False, True):
+        torch.manual_seed(0)
+        policy, _ = models(norm)
+        policy.eval()
+        with torch.no_grad():
+            start = policy(batch["image"], batch["speed"])[0]
+        # a small step: at 1e-3 Adam's per-parameter normalisation turns any residual
+        # correlation into a full step and both runs saturate
+        cfg = tiny(refine_steps=30, refine_batch_size=8, refine_lr=1e-4, refine_w_anchor=0.0,
+                   refine_center_gradient=flag)  # fmt: skip
+        train_refine(cfg, policy, copy.deepcopy(trained_world_model[0]), windows, norm)
+        with torch.no_grad():
+            moved = policy(batch["image"], batch["speed"])[0] - start
+        shift = moved.mean(dim=0)  # (H, 2): what every plan did alike
+        common[flag] = float(shift.abs().mean())
+        individual[flag] = float((moved - shift).abs().mean())
+    assert common[True] < 0.3 * common[False], common
+    assert individual[True] > 0.1 * individual[False], individual
 
 
 def test_refinement_gradient_reaches_the_actions_through_the_frozen_world_model(data):

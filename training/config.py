@@ -73,6 +73,13 @@ class IterateConfig:
     # safeguard: weight of imitation's L1 on demonstration frames during refinement (refine.py);
     # 0: off (the paper's form)
     refine_w_imitation: float = 0.0
+    # safeguard: the world model's gradient on the actions less its mean over the batch of
+    # start frames (refine.py), so refinement changes what the policy does in one situation
+    # against another and cannot shift every plan alike; measured on validation placements
+    # 200-219 (2026-11-24): uncentred, iteration 2's collision term moved every plan's steering
+    # by -0.02 to -0.04 and completion fell 0.80/0.81/0.76 -> 0.61/0.44/0.62 in 100 steps;
+    # False: the paper's form
+    refine_center_gradient: bool = True
     # every N refinement steps the policy is also kept as a candidate (OUT/candidates/
     # refine<step>.pt) so that how far to refine can be chosen by driving
     # (training/select_by_driving.py); 0: only the final policy
