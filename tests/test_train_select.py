@@ -77,6 +77,26 @@ def test_selection_drives_every_candidate_and_keeps_the_best_scoring_one(
                   "--set", "export=false"]) == 0  # fmt: skip
 
 
+def test_a_failure_part_way_leaves_out_as_it_was_and_no_staging(
+    refined, sim_episodes, tmp_path, capsys
+):
+    """The second candidate is not a checkpoint: one line, exit 2, the previous choice at OUT
+    untouched and no half-written staging folder left behind."""
+    start, _ = refined
+    chosen = tmp_path / "selected"
+    chosen.mkdir()
+    (chosen / "policy.pt").write_bytes(b"the previous choice")
+    (tmp_path / "broken.pt").write_bytes(b"not a checkpoint")
+    argv = ["--out", str(chosen), "--candidates", f"start={start / 'policy.pt'}",
+            str(tmp_path / "broken.pt"), "--episodes", str(sim_episodes), "--tracks", "200",
+            "--seconds", "2", "--jobs", "1"]  # fmt: skip
+    assert sel.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "broken.pt" in err, err
+    assert (chosen / "policy.pt").read_bytes() == b"the previous choice"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.pt", "selected"]
+
+
 def aggregate(completion: float, collisions: float) -> dict:
     return {"completion_ratio": {"mean": completion}, "collisions_per_min": {"mean": collisions}}
 

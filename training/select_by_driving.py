@@ -76,11 +76,26 @@ def select(
     collision_cost: float = COLLISION_COST,
     keep: tuple[Path, ...] = (),
 ) -> dict:
+    staging = out.with_name(f".{out.name}.partial")  # renamed to OUT only when all went well
+    shutil.rmtree(staging, ignore_errors=True)
+    try:
+        selection = _select_into(staging, candidates, out, episodes, layout=layout,
+                                 tracks=tracks, seconds=seconds, jobs=jobs,
+                                 collision_cost=collision_cost, keep=keep)  # fmt: skip
+    except BaseException:  # a failed export or eval, Ctrl-C: no half-written folder is left
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    shutil.rmtree(out, ignore_errors=True)
+    staging.rename(out)
+    return selection
+
+
+def _select_into(staging: Path, candidates, out: Path, episodes, *, layout, tracks, seconds,
+                 jobs, collision_cost, keep) -> dict:  # fmt: skip
+    """select()'s work, written into `staging`; paths in selection.json name OUT."""
     from carrt.sim.evaluate import evaluate
     from export import export_policy
 
-    staging = out.with_name(f".{out.name}.partial")  # renamed to OUT only when all went well
-    shutil.rmtree(staging, ignore_errors=True)
     work = staging / "candidates"
     work.mkdir(parents=True)
     driven = []
@@ -105,8 +120,6 @@ def select(
         "rule": "max completion − collision_cost × collisions/min; ties: the earlier candidate",
     }  # fmt: skip
     (staging / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
-    shutil.rmtree(out, ignore_errors=True)
-    staging.rename(out)
     return selection
 
 
