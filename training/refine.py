@@ -30,10 +30,10 @@ preferences that belong to the track, not to the situation — steering to one s
 on average because of where the car usually is — and a few hundred steps of refinement follow
 that average first. Measured on validation placements (2026-11-24, 3 seeds): uncentred, the
 collision term of iteration 2 moved every plan's steering by −0.02 to −0.04 and completion
-fell from 0.80/0.81/0.76 to 0.61/0.44/0.62 within 100 steps; without the collision term it did
-not fall. The mean throttle gradient (the speed reward's "faster everywhere") goes with it, so
-centred refinement trades speed between situations rather than raising it overall. False: the
-paper's form.
+fell from 0.80/0.81/0.76 to 0.61/0.44/0.62 within 100 steps (without the collision term:
+0.83/0.72/0.85). The mean throttle gradient (the speed reward's "faster everywhere") goes
+with it, so centred refinement trades speed between situations rather than raising it overall.
+False: the paper's form.
 
 Frozen means eval() + requires_grad False (WorldModel.freeze()): no parameter moves and the
 BatchNorm running statistics stay those learned on real data — in train mode the imagined
