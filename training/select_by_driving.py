@@ -24,10 +24,12 @@ every candidate's driving numbers, and nothing at all when something fails.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import shutil
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 from carrt.errors import EXIT_USAGE, UserError
@@ -64,6 +66,22 @@ def choose(driven: list[dict], collision_cost: float = COLLISION_COST) -> dict:
     return max(driven, key=lambda c: (round(score(c["aggregate"], collision_cost), 9), -c["order"]))
 
 
+@contextlib.contextmanager
+def staged_folder(out: Path) -> Iterator[Path]:
+    """A fresh folder beside OUT that replaces OUT only when the block finishes; on any error,
+    Ctrl-C included, it is removed and OUT stays as it was."""
+    staging = out.with_name(f".{out.name}.partial")
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    try:
+        yield staging
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    shutil.rmtree(out, ignore_errors=True)
+    staging.rename(out)
+
+
 def select(
     candidates: list[tuple[str, Path]],
     out: Path,
@@ -76,50 +94,36 @@ def select(
     collision_cost: float = COLLISION_COST,
     keep: tuple[Path, ...] = (),
 ) -> dict:
-    staging = out.with_name(f".{out.name}.partial")  # renamed to OUT only when all went well
-    shutil.rmtree(staging, ignore_errors=True)
-    try:
-        selection = _select_into(staging, candidates, out, episodes, layout=layout,
-                                 tracks=tracks, seconds=seconds, jobs=jobs,
-                                 collision_cost=collision_cost, keep=keep)  # fmt: skip
-    except BaseException:  # a failed export or eval, Ctrl-C: no half-written folder is left
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    shutil.rmtree(out, ignore_errors=True)
-    staging.rename(out)
-    return selection
-
-
-def _select_into(staging: Path, candidates, out: Path, episodes, *, layout, tracks, seconds,
-                 jobs, collision_cost, keep) -> dict:  # fmt: skip
-    """select()'s work, written into `staging`; paths in selection.json name OUT."""
     from carrt.sim.evaluate import evaluate
     from export import export_policy
 
-    work = staging / "candidates"
-    work.mkdir(parents=True)
-    driven = []
-    for order, (name, path) in enumerate(candidates):
-        onnx = work / f"{name}.onnx"
-        export_policy(path, onnx, episodes)
-        result = evaluate(onnx, layout, tracks, seconds, (0,), jobs)
-        agg = result["aggregate"]
-        driven.append({"name": name, "order": order, "checkpoint": str(path),
-                       "onnx": str(out / "candidates" / onnx.name), "aggregate": agg,
-                       "score": score(agg, collision_cost)})  # fmt: skip
-        print(f"  {name}: completion {agg['completion_ratio']['mean']:.2f}, "
-              f"{agg['collisions_per_min']['mean']:.1f} collisions/min", flush=True)  # fmt: skip
-    best = choose(driven, collision_cost)
-    for extra in keep:
-        shutil.copy2(extra, staging / extra.name)
-    shutil.copy2(best["checkpoint"], staging / "policy.pt")
-    shutil.copy2(work / f"{best['name']}.onnx", staging / "policy.onnx")
-    selection = {
-        "chosen": best["name"], "candidates": driven, "layout": layout, "tracks": tracks,
-        "seconds": seconds, "collision_cost": collision_cost,
-        "rule": "max completion − collision_cost × collisions/min; ties: the earlier candidate",
-    }  # fmt: skip
-    (staging / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
+    with staged_folder(out) as staging:
+        work = staging / "candidates"
+        work.mkdir(parents=True)
+        driven = []
+        for order, (name, path) in enumerate(candidates):
+            onnx = work / f"{name}.onnx"
+            export_policy(path, onnx, episodes)
+            result = evaluate(onnx, layout, tracks, seconds, (0,), jobs)
+            agg = result["aggregate"]
+            driven.append({"name": name, "order": order, "checkpoint": str(path),
+                           "onnx": str(out / "candidates" / onnx.name), "aggregate": agg,
+                           "score": score(agg, collision_cost)})  # fmt: skip
+            completion, per_min = agg["completion_ratio"]["mean"], agg["collisions_per_min"]["mean"]
+            print(
+                f"  {name}: completion {completion:.2f}, {per_min:.1f} collisions/min", flush=True
+            )
+        best = choose(driven, collision_cost)
+        for extra in keep:
+            shutil.copy2(extra, staging / extra.name)
+        shutil.copy2(best["checkpoint"], staging / "policy.pt")
+        shutil.copy2(work / f"{best['name']}.onnx", staging / "policy.onnx")
+        selection = {
+            "chosen": best["name"], "candidates": driven, "layout": layout, "tracks": tracks,
+            "seconds": seconds, "collision_cost": collision_cost,
+            "rule": "max completion − collision_cost × collisions/min; ties: the earlier candidate",
+        }  # fmt: skip
+        (staging / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
     return selection
 
 
