@@ -38,14 +38,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
-import subprocess
+import shutil
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from bench.dirl_table import comparison, il_at_frames_of, plot, table
+from bench.study_steps import NotRun, StudyStep, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
 
@@ -104,12 +106,22 @@ class StudyConfig:
     select_tracks: str = "200-219"  # validation placements: neither trained on nor evaluated
     select_seconds: float = 30.0  # simulated s per validation placement and candidate
     eval_seconds: float = 60.0  # simulated seconds per held-out placement (a lap is ~7 s)
-    threads: int = 2  # torch threads
-    jobs: int = 2  # simulator processes
+    threads: int = 2  # torch threads in all
+    jobs: int = 2  # simulator processes in all
+    # Steps of different chains run at once, each with threads/parallel torch threads and
+    # jobs/parallel simulator processes (bench/study_steps.py: two 1-thread trainings side by side
+    # do 1.38× the work of one 2-thread training on 2 cores). 1: one step at a time.
+    parallel: int = 2
     report_only: bool = False  # --report: tables from the finished steps, nothing run
 
+    def step_threads(self) -> int:
+        return max(1, self.threads // max(1, self.parallel))
+
+    def step_jobs(self) -> int:
+        return max(1, self.jobs // max(1, self.parallel))
+
     def iterate_overrides(self) -> list[str]:
-        return [f"threads={self.threads}", "progress=false", "figures=false"]
+        return [f"threads={self.step_threads()}", "progress=false", "figures=false"]
 
 
 QUICK = dict(
@@ -123,47 +135,6 @@ QUICK = dict(
 
 
 # ------------------------------------------------------------------------------- plumbing
-class NotRun(Exception):
-    """A step has not run yet and the study only reports (--report): its rows are left out."""
-
-
-class StudyStep:
-    """Runs one command with its output in a log file; a failed command stops the study.
-    Counts finished steps against the planned number and prints an ETA as it goes. With
-    `report_only`, nothing runs: a step that has not finished raises NotRun."""
-
-    def __init__(self, cfg: StudyConfig, planned: int, report_only: bool = False) -> None:
-        self.out = Path(cfg.out)
-        self.logs = self.out / "logs"
-        self.logs.mkdir(parents=True, exist_ok=True)
-        self.planned, self.done, self.spent = planned, 0, 0.0
-        self.report_only = report_only
-
-    def __call__(self, name: str, argv: list[str], marker: Path) -> None:
-        """Run unless `marker` exists; touch it when the command succeeded."""
-        self.done += 1
-        if marker.exists():
-            return
-        if self.report_only:
-            raise NotRun(name)
-        log = self.logs / f"{name}.log"
-        started = time.monotonic()
-        with log.open("w") as fh:
-            fh.write("$ " + " ".join(argv) + "\n")
-            fh.flush()
-            code = subprocess.call(argv, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT)
-        took = time.monotonic() - started
-        self.spent += took
-        if code != 0:
-            raise SystemExit(f"dirl_sim: {name} failed (exit {code}); see {log}")
-        marker.parent.mkdir(parents=True, exist_ok=True)
-        marker.touch()
-        left = max(self.planned - self.done, 0)
-        eta = self.spent / max(self.done, 1) * left / 60
-        print(f"  [{self.done}/{self.planned}] {name}: {took:.0f} s (ETA ~{eta:.0f} min)",
-              flush=True)  # fmt: skip
-
-
 def py(*args: str) -> list[str]:
     return [sys.executable, *args]
 
@@ -214,14 +185,22 @@ def demonstrations(cfg: StudyConfig, step: StudyStep, sigma: float, tracks: str,
     return data
 
 
-def evaluate(cfg: StudyConfig, step: StudyStep, name: str, run: Path, policy: Path) -> dict:
+def evaluate(cfg: StudyConfig, step: StudyStep, name: str, run: Path, policy: Path,
+             same_as: Path | None = None) -> dict:  # fmt: skip
     """`carrt eval` of the run's policy (in `policy`: the run itself, or the policy chosen by
-    driving) on the held-out placements (one simulator seed)."""
-    result = run / "eval.json"
-    step(f"eval-{name}", py("-m", "carrt", "eval", "--model", str(policy / "policy.onnx"),
-         "--layout", cfg.layout, "--tracks", cfg.eval_tracks, "--seconds",
-         str(cfg.eval_seconds), "--seeds", "0", "--jobs", str(cfg.jobs), "--json", str(result)),
-         run / ".done-eval")  # fmt: skip
+    driving) on the held-out placements (one simulator seed). `same_as`: an evaluated run with
+    byte-identical weights (an iteration that kept its start), whose laps these are: driving is
+    deterministic, so they are copied, not driven again."""
+    result, marker = run / "eval.json", run / ".done-eval"
+    if same_as is not None and not marker.exists() and not step.report_only:
+        shutil.copy2(same_as / "eval.json", result)
+        marker.touch()
+        step.reuse(f"eval-{name}", f"the laps of {same_as.name} (same weights)")
+    else:
+        step(f"eval-{name}", py("-m", "carrt", "eval", "--model", str(policy / "policy.onnx"),
+             "--layout", cfg.layout, "--tracks", cfg.eval_tracks, "--seconds",
+             str(cfg.eval_seconds), "--seeds", "0", "--jobs", str(cfg.step_jobs()), "--json",
+             str(result)), marker)  # fmt: skip
     return json.loads(result.read_text())
 
 
@@ -229,17 +208,20 @@ def select(cfg: StudyConfig, step: StudyStep, name: str, run: Path, start: Path,
            data: list[Path]) -> Path:  # fmt: skip
     """The iteration's policy: with select_by_driving, the best of the policy refinement started
     from and its candidates, driven on the validation placements (OUT run/selected, a run
-    directory the next --init reads); else the run's own last policy."""
+    directory the next --init reads); else the run's own last policy. The chain's earlier
+    selections are reused: the start was driven there already (it was chosen there)."""
     if not cfg.select_by_driving:
         return run
     chosen = run / "selected"
     kept = run.glob("candidates/refine*.pt")  # refine<step>.pt, in step order
     candidates = sorted(kept, key=lambda p: int(p.stem.removeprefix("refine")))
+    earlier = sorted(run.parent.glob("*/selected/selection.json"))
     step(f"select-{name}", py("-m", "training.select_by_driving", "--out", str(chosen),
          "--candidates", f"start={start / 'policy.pt'}", *map(str, candidates),
          "--episodes", *map(str, data), "--layout", cfg.layout, "--tracks", cfg.select_tracks,
-         "--seconds", str(cfg.select_seconds), "--jobs", str(cfg.jobs),
-         "--keep", str(run / "world_model.pt")), chosen / ".done")  # fmt: skip
+         "--seconds", str(cfg.select_seconds), "--jobs", str(cfg.step_jobs()),
+         "--keep", str(run / "world_model.pt"), "--reuse", *map(str, earlier)),
+         chosen / ".done")  # fmt: skip
     return chosen
 
 
@@ -250,7 +232,7 @@ def chain(
     seed: int,
     iterations: int,
     rows: list[dict],
-) -> list[dict]:
+) -> None:
     """IL → DIRL 1 (and -unc at σ = 0) → IL at iteration 1's frames → DIRL 2 → … for one noise
     and one seed; each model's row is appended to `rows` as it is evaluated."""
     tag = f"noise{sigma:g}-seed{seed}"
@@ -269,9 +251,16 @@ def chain(
     imitation = ["--set", f"imitation_steps={cfg.imitation_steps}",
                  "--set", "world_model_steps=0", "--set", "refine_steps=0"]  # fmt: skip
 
+    evaluated: dict[str, Path] = {}  # sha256 of policy.pt → the first run evaluated with it
+
     def row(model: str, iteration: int, run: Path, data: list[Path], policy: Path | None = None):
+        from training.select_by_driving import sha256_of
+
         policy = policy or run
-        result = evaluate(cfg, step, f"{tag}-{run.name}", run, policy)
+        digest = sha256_of(policy / "policy.pt")
+        same_as = evaluated.setdefault(digest, run)
+        same_as = None if same_as == run else same_as
+        result = evaluate(cfg, step, f"{tag}-{run.name}", run, policy, same_as)
         metrics = json.loads((run / "metrics.json").read_text())
         selection = policy / "selection.json"
         chosen = json.loads(selection.read_text())["chosen"] if selection.is_file() else None
@@ -279,7 +268,7 @@ def chain(
             "model": model, "iteration": iteration, "demo_noise": sigma, "seed": seed,
             "frames": frames_in(data), "run": str(run), "aggregate": result["aggregate"],
             "runs": result["runs"], "counterfactual": metrics.get("counterfactual"),
-            "chosen": chosen,
+            "chosen": chosen, "same_weights_as": same_as and str(same_as),
         })  # fmt: skip
         agg = result["aggregate"]
         print(f"  [{tag}] {model}: completion {agg['completion_ratio']['mean']:.2f}, "
@@ -296,7 +285,7 @@ def chain(
         step(f"drive-{tag}-iter{k}", py("-m", "training.sim_data", "drives", "--model",
              str(previous / "policy.onnx"), "--out", str(drives), "--tracks", cfg.train_tracks,
              "--layouts", cfg.layout, "--seconds", str(cfg.drive_seconds), "--jobs",
-             str(cfg.jobs), *explore_args(cfg)),
+             str(cfg.step_jobs()), *explore_args(cfg)),
              drives / ".done")  # fmt: skip
         data = [*data, drives]
         run = runs / f"dirl{k}"
@@ -323,7 +312,6 @@ def chain(
              il_eq / ".done")  # fmt: skip
         row(il_at_frames_of(k), k, il_eq, equal)
         previous = policy
-    return rows
 
 
 def planned_steps(cfg: StudyConfig) -> int:
@@ -361,24 +349,22 @@ def main(argv: list[str] | None = None) -> int:
     if not cfg.report_only:  # a report must not relabel the run it reads
         (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
     started = time.monotonic()
-    step = StudyStep(cfg, planned_steps(cfg), report_only=cfg.report_only)
+    step = StudyStep(out, planned_steps(cfg), report_only=cfg.report_only,
+                     parallel=cfg.parallel, cwd=ROOT)  # fmt: skip
     print(f"dirl_sim: profile {cfg.profile}, seeds {list(cfg.seeds)}, {step.planned} steps, "
-          f"out {out}", flush=True)  # fmt: skip
-    rows, missing = [], []
+          f"{cfg.parallel} at once, out {out}", flush=True)  # fmt: skip
+    missing = []
     chains = [(0.0, seed, cfg.iterations) for seed in cfg.seeds if 0.0 in cfg.demo_noise]
     chains += [(sigma, seed, cfg.robustness_iterations) for sigma in cfg.demo_noise if sigma
                for seed in cfg.robustness_seeds]  # fmt: skip
-    for sigma in cfg.demo_noise:
+    for sigma in cfg.demo_noise:  # every chain needs them: first, each with all `jobs`
         try:
             demonstrations(cfg, step, sigma, cfg.train_tracks, "expert")
             demonstrations(cfg, step, sigma, cfg.extra_tracks, "extra")
         except NotRun as exc:
             missing.append(str(exc))
-    for sigma, seed, iterations in chains:
-        try:
-            chain(cfg, step, sigma, seed, iterations, rows)
-        except NotRun as exc:  # --report: this chain stops at its first unfinished step
-            missing.append(str(exc))
+    rows, stopped = run_chains([functools.partial(chain, cfg, step, *c) for c in chains])
+    missing += stopped
     report = (
         table(rows) + "\n\nPaired by seed (model − baseline, each seed's mean over the "
         "held-out placements; mean ± std over seeds):\n\n" + comparison(rows)

@@ -77,6 +77,47 @@ def test_selection_drives_every_candidate_and_keeps_the_best_scoring_one(
                   "--set", "export=false"]) == 0  # fmt: skip
 
 
+def test_reuse_takes_the_numbers_of_identical_weights_and_drives_the_rest(
+    refined, sim_episodes, tmp_path, monkeypatch
+):
+    """The next selection's start is this one's choice: with --reuse it is not driven again, and
+    its reused numbers are what driving it again gives (the simulator is deterministic)."""
+    import carrt.sim.evaluate as sim_evaluate
+
+    start, out = refined
+    first = tmp_path / "first"
+    common = ["--episodes", str(sim_episodes), "--tracks", "200", "--seconds", "4", "--jobs", "1"]
+    assert sel.main(["--out", str(first), "--candidates", f"start={start / 'policy.pt'}",
+                     str(out / "candidates" / "refine2.pt"), *common]) == 0  # fmt: skip
+    earlier = json.loads((first / "selection.json").read_text())
+    picked = next(c for c in earlier["candidates"] if c["name"] == earlier["chosen"])
+
+    driven = []
+    real = sim_evaluate.evaluate
+    monkeypatch.setattr(sim_evaluate, "evaluate", lambda m, *a: driven.append(m) or real(m, *a))
+    second = tmp_path / "second"
+    assert sel.main(["--out", str(second), "--candidates", f"start={first / 'policy.pt'}",
+                     str(out / "candidates" / "refine4.pt"), *common,
+                     "--reuse", str(first / "selection.json")]) == 0  # fmt: skip
+    by_name = {c["name"]: c for c in json.loads((second / "selection.json").read_text())
+               ["candidates"]}  # fmt: skip
+    assert by_name["start"]["reused_from"].endswith(f"selection.json:{earlier['chosen']}")
+    assert by_name["start"]["aggregate"] == picked["aggregate"]
+    assert by_name["refine4"]["reused_from"] is None
+    assert [Path(m).name for m in driven] == ["refine4.onnx"], "only the new weights are driven"
+    # Other placements or seconds are not the same drive: nothing is reused.
+    third = tmp_path / "third"
+    assert sel.main(["--out", str(third), "--candidates", f"start={first / 'policy.pt'}",
+                     *common[:-4], "--seconds", "3", "--jobs", "1",
+                     "--reuse", str(first / "selection.json")]) == 0  # fmt: skip
+    assert (
+        json.loads((third / "selection.json").read_text())["candidates"][0]["reused_from"] is None
+    )
+    # Driving the chosen weights again gives the numbers that were reused.
+    again = real(second / "candidates" / "start.onnx", "hard", [200], 4.0, (0,), 1)
+    assert again["aggregate"] == picked["aggregate"]
+
+
 def test_a_failure_part_way_leaves_out_as_it_was_and_no_staging(
     refined, sim_episodes, tmp_path, capsys
 ):
@@ -121,6 +162,7 @@ def test_the_score_trades_completion_against_collisions_and_ties_keep_fewer_step
         (["--candidates", "x.pt", "--tracks", "100-104"], "held out for evaluation"),
         (["--candidates", "x.pt", "--seconds", "nan"], "--seconds must be > 0"),
         (["--candidates", "x.pt", "--keep", "gone.pt"], "--keep: no such file: gone.pt"),
+        (["--candidates", "x.pt", "--reuse", "gone.json"], "--reuse: cannot read gone.json"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(extra, message, tmp_path, monkeypatch, capsys):

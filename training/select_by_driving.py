@@ -19,12 +19,19 @@ evaluation ones (the `hard` layout's 100-124 are refused).
 OUT gets policy.pt and policy.onnx of the chosen candidate (plus each --keep file, so OUT is a
 run directory the next iteration's `--init` reads), candidates/<name>.onnx, selection.json with
 every candidate's driving numbers, and nothing at all when something fails.
+
+--reuse takes earlier selection.json files: a candidate whose checkpoint is byte-identical
+(sha256) to one already driven there on the same layout, placements and seconds takes those
+numbers instead of being driven again (driving is deterministic: the same weights drive the same
+laps). The next iteration's "start" is this iteration's choice, so each selection after the first
+drives one candidate fewer.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import json
 import math
 import shutil
@@ -53,6 +60,28 @@ def named_candidates(items: list[str]) -> list[tuple[str, Path]]:
     if not out:
         raise UserError("--candidates: nothing to choose from")
     return out
+
+
+def sha256_of(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def driven_before(selections: list[Path], layout: str, tracks: list[int], seconds: float) -> dict:
+    """{checkpoint sha256: (aggregate, where)} of every candidate in earlier selection.json files
+    driven on the same layout, placements and seconds (older files without sha256 give none)."""
+    known: dict[str, tuple[dict, str]] = {}
+    for path in selections:
+        try:
+            earlier = json.loads(Path(path).read_text())
+        except (OSError, ValueError) as exc:
+            raise UserError(f"--reuse: cannot read {path}: {exc}") from exc
+        same = (earlier.get("layout"), earlier.get("tracks"), earlier.get("seconds"))
+        if same != (layout, list(tracks), seconds):
+            continue
+        for c in earlier.get("candidates", []):
+            if "sha256" in c and "aggregate" in c:
+                known.setdefault(c["sha256"], (c["aggregate"], f"{path}:{c['name']}"))
+    return known
 
 
 def score(aggregate: dict, collision_cost: float = COLLISION_COST) -> float:
@@ -93,6 +122,7 @@ def select(
     jobs: int = 2,
     collision_cost: float = COLLISION_COST,
     keep: tuple[Path, ...] = (),
+    reuse: tuple[Path, ...] = (),
 ) -> dict:
     from carrt.sim.evaluate import evaluate
     from export import export_policy
@@ -101,18 +131,22 @@ def select(
         work = staging / "candidates"
         work.mkdir(parents=True)
         driven = []
+        known = driven_before(list(reuse), layout, tracks, seconds)
         for order, (name, path) in enumerate(candidates):
             onnx = work / f"{name}.onnx"
             export_policy(path, onnx, episodes)
-            result = evaluate(onnx, layout, tracks, seconds, (0,), jobs)
-            agg = result["aggregate"]
+            digest = sha256_of(path)
+            agg, reused = known.get(digest, (None, None))
+            if agg is None:
+                agg = evaluate(onnx, layout, tracks, seconds, (0,), jobs)["aggregate"]
             driven.append({"name": name, "order": order, "checkpoint": str(path),
-                           "onnx": str(out / "candidates" / onnx.name), "aggregate": agg,
-                           "score": score(agg, collision_cost)})  # fmt: skip
+                           "sha256": digest, "onnx": str(out / "candidates" / onnx.name),
+                           "aggregate": agg, "score": score(agg, collision_cost),
+                           "reused_from": reused})  # fmt: skip
             completion, per_min = agg["completion_ratio"]["mean"], agg["collisions_per_min"]["mean"]
-            print(
-                f"  {name}: completion {completion:.2f}, {per_min:.1f} collisions/min", flush=True
-            )
+            how = f" (same weights as {reused})" if reused else ""
+            print(f"  {name}: completion {completion:.2f}, {per_min:.1f} collisions/min{how}",
+                  flush=True)  # fmt: skip
         best = choose(driven, collision_cost)
         for extra in keep:
             shutil.copy2(extra, staging / extra.name)
@@ -138,6 +172,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=2, help="simulator processes")
     p.add_argument("--collision-cost", type=float, default=COLLISION_COST)
     p.add_argument("--keep", nargs="*", default=[], help="files copied beside the choice")
+    p.add_argument("--reuse", nargs="*", default=[], metavar="SELECTION_JSON",
+                   help="earlier selections: identical checkpoints take their numbers")  # fmt: skip
     a = p.parse_args(argv)
     try:
         finite = math.isfinite(a.seconds) and math.isfinite(a.collision_cost)
@@ -151,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         selection = select(
             named_candidates(a.candidates), out, a.episodes, layout=a.layout,
             tracks=parse_tracks(a.tracks), seconds=a.seconds, jobs=max(1, a.jobs),
-            collision_cost=a.collision_cost, keep=keep,
+            collision_cost=a.collision_cost, keep=keep, reuse=tuple(Path(r) for r in a.reuse),
         )  # fmt: skip
     except UserError as exc:
         print(f"select_by_driving: error: {' '.join(str(exc).split())}", file=sys.stderr)

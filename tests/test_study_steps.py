@@ -1,0 +1,81 @@
+"""How the study runs its steps (bench/study_steps.py): at most `parallel` commands at once across
+chains, each chain's steps in order, rows in chain order, finished steps skipped, a failure
+stopping every chain. Real subprocesses that record when they ran."""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from bench.study_steps import StudyStep, run_chains
+
+RECORD = (
+    "import json, sys, time; start = time.monotonic(); time.sleep(float(sys.argv[2])); "
+    "open(sys.argv[1], 'w').write(json.dumps([start, time.monotonic()]))"
+)
+
+
+def chain(step: StudyStep, out: Path, name: str, steps: int, rows: list, fail_at: int = -1):
+    for k in range(steps):
+        code = RECORD if k != fail_at else "raise SystemExit(3)"
+        step(f"{name}-{k}", [sys.executable, "-c", code, str(out / f"{name}-{k}.json"), "0.8"],
+             out / "markers" / f"{name}-{k}")  # fmt: skip
+        rows.append(f"{name}-{k}")
+
+
+def intervals(out: Path) -> list[tuple[float, float]]:
+    return [tuple(json.loads(p.read_text())) for p in sorted(out.glob("*.json"))]
+
+
+def most_at_once(spans: list[tuple[float, float]]) -> int:
+    events = sorted([(s, 1) for s, _ in spans] + [(e, -1) for _, e in spans])
+    running = peak = 0
+    for _, change in events:
+        running += change
+        peak = max(peak, running)
+    return peak
+
+
+def test_chains_share_the_slots_and_their_rows_keep_chain_order(tmp_path, capsys):
+    step = StudyStep(tmp_path, planned=8, parallel=2)
+    names = ["a", "b", "c", "d"]
+    rows, missing = run_chains([functools.partial(chain, step, tmp_path, n, 2) for n in names])
+    assert rows == [f"{n}-{k}" for n in names for k in range(2)] and missing == []
+    spans = intervals(tmp_path)
+    assert len(spans) == 8 and most_at_once(spans) == 2, "two at once, never three"
+    assert "[8/8]" in capsys.readouterr().out and (tmp_path / "logs" / "a-0.log").is_file()
+    # Run again: every step has its marker, nothing runs (the study resumes where it stopped).
+    for p in tmp_path.glob("*.json"):
+        p.unlink()
+    again = StudyStep(tmp_path, planned=8, parallel=2)
+    assert run_chains([functools.partial(chain, again, tmp_path, n, 2) for n in names])[0] == rows
+    assert intervals(tmp_path) == []
+
+
+def test_one_at_a_time_when_parallel_is_one(tmp_path):
+    step = StudyStep(tmp_path, planned=4, parallel=1)
+    run_chains([functools.partial(chain, step, tmp_path, n, 2) for n in "ab"])
+    assert most_at_once(intervals(tmp_path)) == 1
+
+
+def test_a_failed_step_stops_every_chain_and_is_reported_after_they_end(tmp_path):
+    step = StudyStep(tmp_path, planned=6, parallel=2)
+    chains = [functools.partial(chain, step, tmp_path, "bad", 3, fail_at=0),
+              functools.partial(chain, step, tmp_path, "good", 3)]  # fmt: skip
+    with pytest.raises(SystemExit, match="bad-0 failed"):
+        run_chains(chains)
+    assert not (tmp_path / "markers" / "bad-0").exists()
+    assert not (tmp_path / "markers" / "good-2").exists(), "the other chain stopped early"
+
+
+def test_report_only_runs_nothing_and_names_each_chain_s_first_missing_step(tmp_path):
+    (tmp_path / "markers").mkdir()
+    (tmp_path / "markers" / "a-0").touch()
+    step = StudyStep(tmp_path, planned=4, report_only=True)
+    rows, missing = run_chains([functools.partial(chain, step, tmp_path, n, 2) for n in "ab"])
+    assert rows == ["a-0"] and missing == ["a-1", "b-0"]
+    assert intervals(tmp_path) == []
