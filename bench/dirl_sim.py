@@ -32,6 +32,9 @@ Output: OUT/results.json (a row per model, seed and noise, with its runs and its
 counterfactual numbers), OUT/table.md (mean ± std over seeds × placements) and
 OUT/completion_vs_frames.png. Every finished step is skipped when the study runs again, so an
 interrupted study continues where it stopped; progress and an ETA are printed as steps finish.
+After the demonstrations, the chains (one per noise and seed) run side by side, `parallel` steps
+at once (bench/study_steps.py); selections and evaluations reuse the numbers of weights they have
+already driven (identical bytes drive identical laps).
 """
 
 from __future__ import annotations
