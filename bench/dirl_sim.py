@@ -112,8 +112,9 @@ class StudyConfig:
     threads: int = 2  # torch threads in all
     jobs: int = 2  # simulator processes in all
     # Steps of different chains run at once, each with threads/parallel torch threads and
-    # jobs/parallel simulator processes (bench/study_steps.py: two 1-thread trainings side by side
-    # do 1.38× the work of one 2-thread training on 2 cores). 1: one step at a time.
+    # jobs/parallel simulator processes (bench/study_steps.py; measured on the full study: two
+    # 1-thread imitation runs side by side do 1.10× the work of one 2-thread run, two 1-process
+    # evaluations 1.14×). 1: one step at a time.
     parallel: int = 2
     report_only: bool = False  # --report: tables from the finished steps, nothing run
 
@@ -257,12 +258,12 @@ def chain(
     evaluated: dict[str, Path] = {}  # sha256 of policy.pt → the first run evaluated with it
 
     def row(model: str, iteration: int, run: Path, data: list[Path], policy: Path | None = None):
-        from training.select_by_driving import sha256_of
+        from carrt.policy import file_sha256
 
         policy = policy or run
-        digest = sha256_of(policy / "policy.pt")
-        same_as = evaluated.setdefault(digest, run)
-        same_as = None if same_as == run else same_as
+        digest = file_sha256(policy / "policy.pt")
+        same_as = evaluated.get(digest)
+        evaluated.setdefault(digest, run)
         result = evaluate(cfg, step, f"{tag}-{run.name}", run, policy, same_as)
         metrics = json.loads((run / "metrics.json").read_text())
         selection = policy / "selection.json"

@@ -2,11 +2,13 @@
 finished, `parallel` of them at once, with progress and an ETA.
 
 Why parallel: on the 2-core machine one training at 2 torch threads uses the cores less well than
-two trainings at 1 thread side by side (measured: 1.38× the samples per second), and the study's
-chains (one per demonstration noise and seed) are independent of each other. So every chain runs
-in its own thread and a step waits for one of `parallel` slots; each step is given its share of
-the threads and simulator processes (StudyConfig.step_threads/step_jobs). A chain's own steps
-stay in order, so its results do not depend on how the chains interleave.
+two trainings at 1 thread side by side (measured in the full study of 2026-11-24: 1.10× the
+imitation samples per second; evaluations at one process each, two at once, 1.14×), and
+single-threaded start-up and export overlap. The study's chains (one per demonstration noise
+and seed) are independent of each other, so every chain runs in its own thread and a step waits
+for one of `parallel` slots; each step is given its share of the threads and simulator
+processes (StudyConfig.step_threads/step_jobs). A chain's own steps stay in order, so its
+results do not depend on how the chains interleave.
 """
 
 from __future__ import annotations

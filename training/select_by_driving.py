@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import hashlib
 import json
 import math
 import shutil
@@ -40,6 +39,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from carrt.errors import EXIT_USAGE, UserError
+from carrt.policy import file_sha256
 from training.sim_data import parse_tracks
 
 COLLISION_COST = 0.05  # completion given up per collision/min in the score
@@ -60,10 +60,6 @@ def named_candidates(items: list[str]) -> list[tuple[str, Path]]:
     if not out:
         raise UserError("--candidates: nothing to choose from")
     return out
-
-
-def sha256_of(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def driven_before(selections: list[Path], layout: str, tracks: list[int], seconds: float) -> dict:
@@ -135,7 +131,7 @@ def select(
         for order, (name, path) in enumerate(candidates):
             onnx = work / f"{name}.onnx"
             export_policy(path, onnx, episodes)
-            digest = sha256_of(path)
+            digest = file_sha256(path)
             agg, reused = known.get(digest, (None, None))
             if agg is None:
                 agg = evaluate(onnx, layout, tracks, seconds, (0,), jobs)["aggregate"]
