@@ -14,14 +14,21 @@ Top to bottom, every step one of the project's own commands (logged under OUT/lo
 2. IL: iterate.py with imitation only.
 3. DIRL iteration k: the previous policy drives the training placements alone
    (`sim_data drives`: auto-reset after every collision, each crash labelled: the world model's
-   collision examples, which the demonstrations hardly hold); the episodes join the data;
-   iterate.py --init continues the world model on all of it, refines the policy in imagination
+   collision examples, which the demonstrations hardly hold), then again with the expert
+   playing the person who takes over before a crash (`sim_data interventions`, with the
+   demonstrations' σ: the override every real-car drive has; its commands label states the
+   policy itself reached); the episodes join the data. iterate.py --init first trains the
+   previous policy further by imitation on every labelled frame (`reimitate`, the take-overs
+   included), continues the world model on all of it, refines the policy in imagination
    and scores the world model against the simulator (training/counterfactual.py, placements
-   200-204, never the evaluation ones). Refinement keeps a candidate every 100 steps; each, and
-   the policy refinement started from, is driven on validation placements 200-219 and the best
-   is the iteration's policy (training/select_by_driving.py; select_by_driving=false: the last
-   step's). DIRL -unc: iteration 1's world model, refinement without the uncertainty term,
-   chosen the same way.
+   200-204, never the evaluation ones). Refinement keeps a candidate every 100 steps; each, the
+   policy imitation made and the policy the iteration started from are driven on validation
+   placements 200-219 and the best is the iteration's policy (training/select_by_driving.py;
+   select_by_driving=false: the last step's). The policy imitation made is also evaluated as
+   its own row ("before refinement"): what refinement adds beyond the take-overs.
+   takeover_seconds=0 reimitate_steps=0 is the paper's iteration (imitation once, drives
+   without a person). DIRL -unc: iteration 1's world model and imitated policy, refinement
+   without the uncertainty term, chosen the same way.
 4. IL at equal frames, once per DIRL iteration k: imitation on the demonstrations plus as many
    frames from the second pool as iterations 1..k's drives added, so every DIRL row is compared
    with imitation on (at least) as many frames as it had.
@@ -43,18 +50,24 @@ import argparse
 import dataclasses
 import functools
 import json
-import shutil
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.dirl_table import comparison, il_at_frames_of, plot, table
+from bench.dirl_steps import (
+    ROOT,
+    demonstrations,
+    evaluate,
+    frames_in,
+    iterate_cmd,
+    iteration_drives,
+    select,
+    top_up,
+)
+from bench.dirl_table import before_refinement, comparison, il_at_frames_of, plot, table
 from bench.study_steps import NotRun, StudyStep, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @dataclass
@@ -86,6 +99,19 @@ class StudyConfig:
     explore_fraction: float = 0.8  # share of drive time perturbed (noise.fraction)
     explore_amplitude: float = 0.8  # uniform ± on steering and throttle (noise.amplitude)
     explore_hold_s: tuple[float, ...] = (0.5, 1.5)  # each value held this long (min, max)
+    # Take-overs: after those drives, the policy drives the training placements again, this
+    # many simulated s each, with the expert playing the person who takes over before a crash
+    # (`sim_data interventions`, the same σ as the demonstrations): the override every real-car
+    # drive has, whose commands label states the policy itself reached. 0: none (the paper's
+    # drives, e-stop = collision, and the studies before 2026-11-24's sixth run).
+    takeover_seconds: float = 8.0
+    # A DIRL iteration first learns by imitation again, from the previous policy, on every
+    # labelled frame (demonstrations + take-overs): iterate.py's `reimitate`, this many steps at
+    # this learning rate (a fine-tune of the previous policy; IL trains 3000 steps at 1e-3).
+    # Its policy is a selection candidate ("imitated") and gets its own row (the ablation: DIRL
+    # without refinement). 0: the paper's Algorithm 1, imitation once.
+    reimitate_steps: int = 1000
+    reimitate_lr: float = 3e-4
     w_image: float = 0.1  # the world model's image-loss weight (training/config.py)
     imitation_steps: int = 3000
     world_model_steps: int = 3000  # iteration 1
@@ -130,103 +156,12 @@ class StudyConfig:
 
 QUICK = dict(
     out="bench/results/dirl_sim_quick", profile="tiny", seeds=(0,), robustness_seeds=(0,),
-    train_tracks="1000", extra_tracks="1001", eval_tracks="100", counterfactual_tracks="200",
+    train_tracks="1000", extra_tracks="1001-1002", eval_tracks="100", counterfactual_tracks="200",
     counterfactual_starts=2, expert_episodes=2, demo_noise=(0.0, 0.5), iterations=2,
     drive_seconds=5.0, imitation_steps=30, world_model_steps=30, world_model_steps_next=10,
     refine_steps=10, eval_seconds=10.0, refine_candidates_every=5, select_tracks="200",
-    select_seconds=5.0,
+    select_seconds=5.0, takeover_seconds=5.0, reimitate_steps=10,
 )  # fmt: skip
-
-
-# ------------------------------------------------------------------------------- plumbing
-def py(*args: str) -> list[str]:
-    return [sys.executable, *args]
-
-
-def iterate_cmd(cfg: StudyConfig, episodes: list[Path], out: Path, *extra: str) -> list[str]:
-    sets = [arg for item in cfg.iterate_overrides() for arg in ("--set", item)]
-    return py(str(ROOT / "training" / "iterate.py"), "--episodes", *map(str, episodes),
-              "--out", str(out), "--profile", cfg.profile, *sets, *extra)  # fmt: skip
-
-
-def explore_args(cfg: StudyConfig) -> list[str]:
-    """`carrt-sim-data drives` arguments for the exploration noise (none when it is off)."""
-    if not cfg.drive_explore:
-        return []
-    lo, hi = cfg.explore_hold_s
-    sets = (f"noise.fraction={cfg.explore_fraction}", f"noise.amplitude={cfg.explore_amplitude}",
-            f"noise.hold_min_s={lo}", f"noise.hold_max_s={hi}")  # fmt: skip
-    return ["--explore", *(arg for item in sets for arg in ("--set", item))]
-
-
-def frames_in(paths: list[Path]) -> int:
-    from training.sim_data import count_frames
-
-    return count_frames(*paths)
-
-
-def top_up(pool: Path, frames: int) -> list[Path]:
-    """Whole episodes from `pool`, in name order, until they hold at least `frames` frames."""
-    from carrt.episodes.reader import list_episodes, read_episode
-
-    picked, total = [], 0
-    for path in list_episodes([str(pool)]):
-        if total >= frames:
-            break
-        picked.append(Path(path))
-        total += read_episode(path).n
-    if total < frames:
-        raise SystemExit(f"dirl_sim: {pool} holds {total} frames, {frames} needed: more tracks")
-    return picked
-
-
-# ------------------------------------------------------------------------------- the steps
-def demonstrations(cfg: StudyConfig, step: StudyStep, sigma: float, tracks: str, tag: str) -> Path:
-    data = Path(cfg.out) / "data" / f"{tag}-noise{sigma:g}"
-    step(f"{tag}-noise{sigma:g}", py("-m", "training.sim_data", "demos", "--out", str(data),
-         "--tracks", tracks, "--layouts", cfg.layout, "--episodes", str(cfg.expert_episodes),
-         "--noise", str(sigma), "--jobs", str(cfg.jobs)), data / ".done")  # fmt: skip
-    return data
-
-
-def evaluate(cfg: StudyConfig, step: StudyStep, name: str, run: Path, policy: Path,
-             same_as: Path | None = None) -> dict:  # fmt: skip
-    """`carrt eval` of the run's policy (in `policy`: the run itself, or the policy chosen by
-    driving) on the held-out placements (one simulator seed). `same_as`: an evaluated run with
-    byte-identical weights (an iteration that kept its start), whose laps these are: driving is
-    deterministic, so they are copied, not driven again."""
-    result, marker = run / "eval.json", run / ".done-eval"
-    if same_as is not None and not marker.exists() and not step.report_only:
-        shutil.copy2(same_as / "eval.json", result)
-        marker.touch()
-        step.reuse(f"eval-{name}", f"the laps of {same_as.name} (same weights)")
-    else:
-        step(f"eval-{name}", py("-m", "carrt", "eval", "--model", str(policy / "policy.onnx"),
-             "--layout", cfg.layout, "--tracks", cfg.eval_tracks, "--seconds",
-             str(cfg.eval_seconds), "--seeds", "0", "--jobs", str(cfg.step_jobs()), "--json",
-             str(result)), marker)  # fmt: skip
-    return json.loads(result.read_text())
-
-
-def select(cfg: StudyConfig, step: StudyStep, name: str, run: Path, start: Path,
-           data: list[Path]) -> Path:  # fmt: skip
-    """The iteration's policy: with select_by_driving, the best of the policy refinement started
-    from and its candidates, driven on the validation placements (OUT run/selected, a run
-    directory the next --init reads); else the run's own last policy. The chain's earlier
-    selections are reused: the start was driven there already (it was chosen there)."""
-    if not cfg.select_by_driving:
-        return run
-    chosen = run / "selected"
-    kept = run.glob("candidates/refine*.pt")  # refine<step>.pt, in step order
-    candidates = sorted(kept, key=lambda p: int(p.stem.removeprefix("refine")))
-    earlier = sorted(run.parent.glob("*/selected/selection.json"))
-    step(f"select-{name}", py("-m", "training.select_by_driving", "--out", str(chosen),
-         "--candidates", f"start={start / 'policy.pt'}", *map(str, candidates),
-         "--episodes", *map(str, data), "--layout", cfg.layout, "--tracks", cfg.select_tracks,
-         "--seconds", str(cfg.select_seconds), "--jobs", str(cfg.step_jobs()),
-         "--keep", str(run / "world_model.pt"), "--reuse", *map(str, earlier)),
-         chosen / ".done")  # fmt: skip
-    return chosen
 
 
 def chain(
@@ -255,26 +190,37 @@ def chain(
     imitation = ["--set", f"imitation_steps={cfg.imitation_steps}",
                  "--set", "world_model_steps=0", "--set", "refine_steps=0"]  # fmt: skip
 
-    evaluated: dict[str, Path] = {}  # sha256 of policy.pt → the first run evaluated with it
+    evaluated: dict[str, Path] = {}  # sha256 of policy.pt → the first eval.json with it
 
-    def row(model: str, iteration: int, run: Path, data: list[Path], policy: Path | None = None):
+    def row(model: str, iteration: int, run: Path, data: list[Path], policy: Path | None = None,
+            candidate: str | None = None):  # fmt: skip
+        """Evaluate and record one model: the run's policy, the one chosen by driving (`policy`)
+        or one of its selection's candidates (`candidate`: its name there)."""
         from carrt.policy import file_sha256
 
         policy = policy or run
-        digest = file_sha256(policy / "policy.pt")
+        if candidate:
+            selection = json.loads((policy / "selection.json").read_text())
+            entry = next(c for c in selection["candidates"] if c["name"] == candidate)
+            pt, onnx = Path(entry["checkpoint"]), policy / "candidates" / f"{candidate}.onnx"
+            result, chosen = run / f"eval-{candidate}.json", None
+        else:
+            pt, onnx, result = policy / "policy.pt", policy / "policy.onnx", run / "eval.json"
+            selection = policy / "selection.json"
+            chosen = json.loads(selection.read_text())["chosen"] if selection.is_file() else None
+        digest = file_sha256(pt)
         same_as = evaluated.get(digest)
-        evaluated.setdefault(digest, run)
-        result = evaluate(cfg, step, f"{tag}-{run.name}", run, policy, same_as)
+        evaluated.setdefault(digest, result)
+        suffix = f"-{candidate}" if candidate else ""
+        out = evaluate(cfg, step, f"{tag}-{run.name}{suffix}", onnx, result, same_as)
         metrics = json.loads((run / "metrics.json").read_text())
-        selection = policy / "selection.json"
-        chosen = json.loads(selection.read_text())["chosen"] if selection.is_file() else None
         rows.append({
             "model": model, "iteration": iteration, "demo_noise": sigma, "seed": seed,
-            "frames": frames_in(data), "run": str(run), "aggregate": result["aggregate"],
-            "runs": result["runs"], "counterfactual": metrics.get("counterfactual"),
-            "chosen": chosen, "same_weights_as": same_as and str(same_as),
+            "frames": frames_in(data), "run": str(run), "aggregate": out["aggregate"],
+            "runs": out["runs"], "counterfactual": metrics.get("counterfactual"),
+            "chosen": chosen, "same_weights_as": same_as and str(same_as.parent),
         })  # fmt: skip
-        agg = result["aggregate"]
+        agg = out["aggregate"]
         print(f"  [{tag}] {model}: completion {agg['completion_ratio']['mean']:.2f}, "
               f"{agg['collisions_per_min']['mean']:.1f} collisions/min"
               + (f" (chosen by driving: {chosen})" if chosen else ""), flush=True)  # fmt: skip
@@ -284,21 +230,21 @@ def chain(
     row("IL", 0, il, [expert])
     data, previous = [expert], il
     expert_frames = frames_in([expert])  # read once: every iteration tops up against it
+    reimitate = cfg.reimitate_steps > 0
+    again = ["--set", "reimitate=true", "--set", f"imitation_steps={cfg.reimitate_steps}",
+             "--set", f"imitation_lr={cfg.reimitate_lr}"] if reimitate else []  # fmt: skip
     for k in range(1, iterations + 1):
-        drives = Path(cfg.out) / "data" / f"drives-{tag}-iter{k}"
-        step(f"drive-{tag}-iter{k}", py("-m", "training.sim_data", "drives", "--model",
-             str(previous / "policy.onnx"), "--out", str(drives), "--tracks", cfg.train_tracks,
-             "--layouts", cfg.layout, "--seconds", str(cfg.drive_seconds), "--jobs",
-             str(cfg.step_jobs()), *explore_args(cfg)),
-             drives / ".done")  # fmt: skip
-        data = [*data, drives]
+        data = [*data, *iteration_drives(cfg, step, tag, sigma, k, previous)]
         run = runs / f"dirl{k}"
         wm_steps = cfg.world_model_steps if k == 1 else cfg.world_model_steps_next
         step(f"train-{tag}-dirl{k}", iterate_cmd(cfg, data, run, *common, "--init",
-             str(previous), "--set", f"world_model_steps={wm_steps}",
+             str(previous), *again, "--set", f"world_model_steps={wm_steps}",
              "--set", f"refine_steps={cfg.refine_steps}"), run / ".done")  # fmt: skip
-        policy = select(cfg, step, f"{tag}-dirl{k}", run, previous, data)
+        imitated = run / "checkpoints" / "imitation.pt" if reimitate else None
+        policy = select(cfg, step, f"{tag}-dirl{k}", run, previous, data, imitated)
         row(f"DIRL iter {k}", k, run, data, policy)
+        if imitated and cfg.select_by_driving:
+            row(before_refinement(k), k, run, data, policy, candidate="imitated")
         if k == 1 and sigma == 0:
             # The same world model and start policy: only the uncertainty term differs.
             unc = runs / "unc1"
@@ -306,7 +252,7 @@ def chain(
                  str(run / "checkpoints" / "world_model.pt"), "--no-uncertainty",
                  "--set", "world_model_steps=0", "--set", f"refine_steps={cfg.refine_steps}"),
                  unc / ".done")  # fmt: skip
-            unc_policy = select(cfg, step, f"{tag}-unc1", unc, previous, data)
+            unc_policy = select(cfg, step, f"{tag}-unc1", unc, previous, data, imitated)
             row("DIRL -unc iter 1", 1, unc, data, unc_policy)
         # Imitation on as many frames as this iteration had, from the second demonstration
         # pool (whole episodes in name order, so iteration k's set extends iteration k-1's).
@@ -323,6 +269,8 @@ def planned_steps(cfg: StudyConfig) -> int:
     chains += [(x, s, cfg.robustness_iterations) for x in cfg.demo_noise if x
                for s in cfg.robustness_seeds]  # fmt: skip
     per_dirl, per_unc = (6, 3) if cfg.select_by_driving else (5, 2)  # + a selection each
+    per_dirl += 1 if cfg.takeover_seconds else 0  # the take-over drives
+    per_dirl += 1 if cfg.reimitate_steps and cfg.select_by_driving else 0  # before refinement
     per_chain = sum(2 + per_dirl * k + (per_unc if sigma == 0 else 0) for sigma, _, k in chains)
     return 2 * len(cfg.demo_noise) + per_chain
 

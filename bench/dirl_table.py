@@ -63,13 +63,26 @@ def il_at_frames_of(k: int | str) -> str:
     return f"IL, frames of iter {k}"
 
 
+BEFORE_REFINEMENT = " before refinement"
+
+
+def before_refinement(k: int | str) -> str:
+    """The row name of DIRL iteration k's policy after its imitation on the take-overs and
+    before refinement (the study's ablation: what refinement adds beyond the take-overs)."""
+    return f"DIRL iter {k}{BEFORE_REFINEMENT}"
+
+
 def baselines(model: str) -> list[str]:
     """What a model is compared with, seed by seed: the paper's questions."""
     if model.startswith("DIRL -unc iter "):
         return [model.replace("DIRL -unc", "DIRL")]  # does the uncertainty term matter?
+    if model.startswith("DIRL iter ") and model.endswith(BEFORE_REFINEMENT):
+        k = model.removeprefix("DIRL iter ").removesuffix(BEFORE_REFINEMENT)
+        return ["IL", il_at_frames_of(k)]  # do the take-overs alone beat more demonstrations?
     if model.startswith("DIRL iter "):
         k = model.removeprefix("DIRL iter ")
-        return ["IL", il_at_frames_of(k)]  # better than its start; than more data?
+        # better than its start; than more data; than the take-overs without refinement?
+        return ["IL", il_at_frames_of(k), before_refinement(k)]
     return []
 
 
@@ -117,6 +130,7 @@ def plot(rows: list[dict], path: Path) -> None:
         frames = [r["frames"] for r in rs]
         completion = [r["aggregate"]["completion_ratio"]["mean"] for r in rs]
         marker = "s" if model.startswith("IL") else ("x" if "-unc" in model else "o")
+        marker = "^" if model.endswith(BEFORE_REFINEMENT) else marker
         ax.errorbar(np.mean(frames), np.mean(completion), yerr=np.std(completion), fmt=marker,
                     capsize=3, label=f"σ {sigma:g} {model}")  # fmt: skip
     ax.set_xlabel("frames of data")

@@ -41,14 +41,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         choices=("auto",),
         help="with --sim: the scripted expert drives instead of a person",
     )
-    teleop.add_argument(
-        "--expert-noise",
-        type=_non_negative,
-        default=0.0,
-        metavar="SIGMA",
-        help="with --expert: add Gaussian noise of this σ to every expert command (the paper's "
-        "imperfect demonstrations: 0.5, 1.0)",
-    )
+    _expert_noise_argument(teleop, "with --expert")
     teleop.set_defaults(func=run_teleop)
     drive = subparsers.add_parser(
         "drive", help="let a policy drive; the joystick overrides and e-stops"
@@ -68,8 +61,22 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         help="with --sim --autopilot: the scripted expert plays the person who takes over "
         "when a collision is near (recorded as interventions: override + the expert's a*)",
     )
+    _expert_noise_argument(drive, "with --expert-intervene: on the expert's take-overs")
     _common_arguments(drive)
     drive.set_defaults(func=run_drive)
+
+
+def _expert_noise_argument(parser: argparse.ArgumentParser, when: str) -> None:
+    """The imperfect person: the same σ on demonstrations and on take-overs, so a study's noisy
+    demonstrator does not become a clean one when it takes over from the policy."""
+    parser.add_argument(
+        "--expert-noise",
+        type=_non_negative,
+        default=0.0,
+        metavar="SIGMA",
+        help=f"{when}, add Gaussian noise of this σ to every expert command (the paper's "
+        "imperfect demonstrations: 0.5, 1.0)",
+    )
 
 
 def _non_negative(text: str) -> float:

@@ -12,7 +12,7 @@ import json
 
 import pytest
 
-from bench import dirl_sim, dirl_table
+from bench import dirl_sim, dirl_steps, dirl_table
 
 
 def _row(model, seed, completions, frames=1000, sigma=0.0, iteration=0, check=None):
@@ -44,34 +44,68 @@ def test_settings_parse_tuples_and_refuse_unknown_fields():
 
 def test_the_drives_explore_with_the_configured_noise():
     cfg = dirl_sim.parse(["--set", "explore_amplitude=0.6", "--set", "explore_hold_s=0.4,1.2"])
-    args = dirl_sim.explore_args(cfg)
+    args = dirl_steps.explore_args(cfg)
     assert args[0] == "--explore"
     sets = dict(a.split("=") for a in args[2::2])
     assert sets == {"noise.fraction": "0.8", "noise.amplitude": "0.6",
                     "noise.hold_min_s": "0.4", "noise.hold_max_s": "1.2"}  # fmt: skip
-    assert dirl_sim.explore_args(dirl_sim.parse(["--set", "drive_explore=false"])) == []
+    assert dirl_steps.explore_args(dirl_sim.parse(["--set", "drive_explore=false"])) == []
 
 
 def test_the_plan_counts_every_step_the_study_runs():
     cfg = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
                           "iterations=2", "--set", "robustness_iterations=1"])  # fmt: skip
-    # demos 2×2; σ 0 per seed: IL 2 + 2 iterations × (drive, train, select, eval + IL at its
-    # frames train, eval) + -unc 3 (train, select, eval) = 17; σ 1: IL 2 + 1 iteration × 6 = 8
-    assert dirl_sim.planned_steps(cfg) == 4 + 2 * 17 + 8
-    # without the selection by driving, one step less per DIRL row
+    # demos 2×2; σ 0 per seed: IL 2 + 2 iterations × (drive, take-overs, train, select, eval,
+    # eval before refinement + IL at its frames train, eval) + -unc 3 (train, select, eval)
+    # = 21; σ 1: IL 2 + 1 iteration × 8 = 10
+    assert dirl_sim.planned_steps(cfg) == 4 + 2 * 21 + 10
+    # without the selection by driving, no selection and no before-refinement row
     off = dataclasses.replace(cfg, select_by_driving=False)
-    assert dirl_sim.planned_steps(off) == 4 + 2 * 14 + 7
+    assert dirl_sim.planned_steps(off) == 4 + 2 * 16 + 8
+    # the paper's iterations (no take-overs, imitation once): drive, train, select, eval, IL ×2
+    paper = dataclasses.replace(cfg, takeover_seconds=0.0, reimitate_steps=0)
+    assert dirl_sim.planned_steps(paper) == 4 + 2 * 17 + 8
+
+
+class _Steps:
+    """Records what the study would run instead of running it."""
+
+    def __init__(self):
+        self.commands: dict[str, list[str]] = {}
+
+    def __call__(self, name, command, marker):
+        self.commands[name] = command
+
+
+def _flag(command: list[str], flag: str) -> str:
+    return command[command.index(flag) + 1]
+
+
+def test_an_iteration_drives_alone_then_with_the_noisy_person_taking_over(tmp_path):
+    cfg = dirl_sim.parse(["--set", f"out={tmp_path}", "--set", "takeover_seconds=8"])
+    steps = _Steps()
+    data = dirl_steps.iteration_drives(cfg, steps, "noise1-seed0", 1.0, 2, tmp_path / "dirl1")
+    assert [d.name for d in data] == ["drives-noise1-seed0-iter2", "takeovers-noise1-seed0-iter2"]
+    alone, helped = steps.commands.values()
+    assert "drives" in alone and "--explore" in alone, "crashes from varied actions"
+    assert "interventions" in helped and "--explore" not in helped, "the policy's own states"
+    assert _flag(helped, "--noise") == "1.0", "the demonstrations' σ"
+    assert _flag(helped, "--seconds") == "8.0" and _flag(helped, "--model").endswith(
+        "dirl1/policy.onnx"
+    )
+    off = dataclasses.replace(cfg, takeover_seconds=0.0)
+    assert len(dirl_steps.iteration_drives(off, _Steps(), "t", 0.0, 1, tmp_path)) == 1
 
 
 def test_top_up_takes_whole_episodes_until_the_frames_are_reached(sim_episodes):
     from carrt.episodes.reader import list_episodes, read_episode
 
     sizes = [read_episode(p).n for p in list_episodes([str(sim_episodes)])]
-    picked = dirl_sim.top_up(sim_episodes, sizes[0] + 1)
+    picked = dirl_steps.top_up(sim_episodes, sizes[0] + 1)
     assert len(picked) == 2
-    assert dirl_sim.frames_in(picked) == sizes[0] + sizes[1]
+    assert dirl_steps.frames_in(picked) == sizes[0] + sizes[1]
     with pytest.raises(SystemExit, match="frames"):
-        dirl_sim.top_up(sim_episodes, sum(sizes) + 1)
+        dirl_steps.top_up(sim_episodes, sum(sizes) + 1)
 
 
 def test_table_pools_runs_over_seeds_per_model_and_noise():
@@ -107,6 +141,19 @@ def test_comparison_pairs_each_dirl_row_with_its_baselines_seed_by_seed():
     unc = next(line for line in lines if line.startswith("| 0 | DIRL -unc iter 1 |"))
     assert "| DIRL iter 1 | 1 | -0.10 |" in unc
     assert not any("| IL | IL" in line for line in lines), "IL rows have no baseline"
+
+
+def test_refinement_is_compared_with_the_same_iteration_before_it():
+    """With take-overs, DIRL's gain could be the take-overs alone: each DIRL row is paired with
+    its own policy before refinement, and that one with IL and IL at equal frames."""
+    name = dirl_table.before_refinement(2)
+    assert name == "DIRL iter 2 before refinement"
+    assert dirl_table.baselines("DIRL iter 2") == ["IL", "IL, frames of iter 2", name]
+    assert dirl_table.baselines(name) == ["IL", "IL, frames of iter 2"]
+    rows = [_row("DIRL iter 1", 0, [0.6], iteration=1),
+            _row(dirl_table.before_refinement(1), 0, [0.5], iteration=1)]  # fmt: skip
+    lines = dirl_table.comparison(rows).splitlines()
+    assert any("| DIRL iter 1 | DIRL iter 1 before refinement | 1 | +0.10 |" in x for x in lines)
 
 
 def test_plot_writes_completion_against_frames(tmp_path):

@@ -79,3 +79,39 @@ def test_intervention_mode_records_expert_labels_and_prevents_crashes(tmp_path):
     taken = manual & (np.abs(human).sum(axis=1) > 0)
     assert np.allclose(human[taken], executed[taken])
     assert taken.sum() >= 10 * override.sum() // 2, "it drives for a while after each takeover"
+
+
+def test_a_noisy_demonstrator_is_as_noisy_when_it_takes_over():
+    """The robustness setting's imperfect person (σ on every command) keeps its σ when it takes
+    over from the policy: the study's take-overs must not be cleaner than its demonstrations."""
+    world = SimWorld("empty")
+    plant = SimPlant(world)
+    reference = ScriptedExpert(world.track, world.params)
+    pilots = {
+        sigma: SimPilot(
+            plant,
+            SimClock(),
+            expert=ScriptedExpert(world.track, world.params),
+            engage_auto=True,
+            intervene=True,
+            expert_noise=sigma,
+        )
+        for sigma in (0.0, 1.0)
+    }
+    for _ in range(200):  # straight at the fence, as above
+        world.step(0.01, 0.0, 1.0)
+        if collision_ahead(world):
+            break
+    assert collision_ahead(world)
+    deviations = {}
+    for sigma, pilot in pilots.items():
+        pilot.mode_source = lambda: Mode.AUTO
+        sticks = pilot.poll()
+        assert pilot.log.interventions == 1, "it took over"
+        pilot.mode_source = lambda: Mode.MANUAL
+        polls = [sticks, *(pilot.poll() for _ in range(50))]
+        expert = np.array(reference.act(world.car))
+        deviations[sigma] = np.array([(p.steering, p.throttle) for p in polls]) - expert
+    assert np.abs(deviations[0.0]).max() == 0.0, "σ 0: exactly the expert's sticks"
+    spread = deviations[1.0].std(axis=0)
+    assert (spread > 0.3).all(), f"σ 1: the take-over sticks carry the noise ({spread})"

@@ -120,6 +120,26 @@ def test_next_iteration_starts_from_the_previous_one(iteration1, sim_episodes, t
     assert "iteration 2" in (out / "report.md").read_text()
 
 
+def test_reimitate_learns_again_from_the_previous_policy_before_the_world_model(
+    iteration1, sim_episodes, tmp_path
+):
+    """reimitate (the study's take-overs): a later iteration first learns by imitation, from
+    the previous policy and with its input scaling, and the world model and refinement start
+    from what that imitation made."""
+    _, prev = iteration1
+    out = tmp_path / "iter2"
+    argv = ["--episodes", str(sim_episodes), "--out", str(out), "--init", str(prev)]
+    assert main([*argv, *QUICK, *steps(6, 2, 2), "--set", "reimitate=true"]) == 0
+    imitated = ck.load_checkpoint(out / "checkpoints" / "imitation.pt")
+    first = ck.load_checkpoint(prev / "policy.pt")
+    assert imitated["step"] == 6 and imitated["iteration"] == 2
+    assert imitated["normalisation"] == first["normalisation"], "the previous policy's scaling"
+    changed = [k for k, v in imitated["policy"].items() if not torch.equal(v, first["policy"][k])]
+    assert changed, "imitation trained the previous policy further"
+    wm = ck.load_checkpoint(out / "checkpoints" / "world_model.pt")
+    assert all(torch.equal(v, imitated["policy"][k]) for k, v in wm["policy"].items())
+
+
 def test_an_interrupted_run_resumes_where_it_stopped(sim_episodes, tmp_path, capsys):
     argv = ["--episodes", str(sim_episodes), *QUICK, *steps(4, 4, 4)]
     straight = tmp_path / "straight"

@@ -39,6 +39,22 @@ def test_interventions_need_a_model(tmp_path, capsys):
     assert "no such model" in capsys.readouterr().err
 
 
+def test_take_overs_carry_the_demonstrators_noise_to_every_placement(tmp_path):
+    """`interventions --noise σ`: each placement's `carrt drive` gets --expert-noise σ, and
+    the parser of `carrt drive` accepts it (the robustness setting's take-overs)."""
+    from carrt.cli import build_parser
+
+    model = tmp_path / "p.onnx"
+    jobs = sim_data.drive_jobs(tmp_path, model, [1000, 1001], ["hard"], 8.0, intervene=True,
+                               noise=0.5)  # fmt: skip
+    for job in jobs:
+        assert job.argv[job.argv.index("--expert-noise") + 1] == "0.5"
+        args = build_parser().parse_args(list(job.argv))
+        assert args.expert_noise == 0.5 and args.expert_intervene
+    alone = sim_data.drive_jobs(tmp_path, model, [1000], ["hard"], 8.0, intervene=False)
+    assert "--expert-noise" not in alone[0].argv, "no person, no noise of theirs"
+
+
 def test_more_placements_than_a_worker_runs_all_finish(tmp_path, monkeypatch):
     """Regression: with max_tasks_per_child the pool hung once both workers had retired (CPython
     gh-115634; the take-over recording stopped forever after 100 placements)."""

@@ -45,6 +45,11 @@ class IterateConfig:
     augment_brightness: float = 0.2  # max brightness shift, share of full scale
     augment_contrast: float = 0.2  # max relative contrast change
     mirror_imitation: bool = False  # mirror half of each batch, steering negated (augment.py)
+    # A later iteration (--init) learns by imitation again before the world model: from the
+    # previous policy, imitation_steps on every labelled frame given, the demonstrations and the
+    # person's take-overs in the new drives (states the policy itself reached, DAgger-style).
+    # False: the paper's Algorithm 1, imitation once.
+    reimitate: bool = False
     # -- stage 2: world model (evidential image/speed regression + collision classification)
     world_model_steps: int = 30000  # optimizer steps (our choice)
     world_model_batch_size: int = 32  # global batch (paper: 32)

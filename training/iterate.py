@@ -7,7 +7,9 @@
 Iteration 1 (no --init) learns the policy by imitation, then the world model, then refines the
 policy in the world model's imagination. A later iteration (--init runs/iterN-1) starts from the
 previous policy and world model, trains the world model on ALL the episodes given (old + new)
-and refines again; imitation does not run again (the paper's algorithm, DESIGN §2).
+and refines again; imitation does not run again (the paper's algorithm, DESIGN §2) unless
+`reimitate` is set: then the previous policy first learns by imitation on every labelled frame,
+the person's take-overs in the new episodes included.
 
 Every number lives in IterateConfig (training/config.py); a profile name picks model sizes and
 a preset of steps and batch sizes (PRESETS), and `--set field=value` overrides any field.
@@ -193,7 +195,7 @@ def starting_point(cfg: IterateConfig, train_eps: list) -> Start:
     return Start(
         norm=Normalisation.from_dict(init_ckpt["normalisation"]),
         iteration=int(init_ckpt["iteration"]) + 1,
-        stages=["world_model", "refine"],
+        stages=(["imitation"] if cfg.reimitate else []) + ["world_model", "refine"],
         policy=init_ckpt["policy"],
         world_model=init_wm["world_model"] if init_wm is not None else None,
     )

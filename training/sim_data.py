@@ -93,14 +93,16 @@ def drive_jobs(
     intervene: bool,
     explore: bool = False,
     sets: tuple[str, ...] = (),
+    noise: float = 0.0,
 ) -> list[Job]:
     """The policy drives each placement; with `intervene` the expert takes over before a crash,
     without it every crash is recorded (labelled, then the auto-reset) for the world model.
     `explore`: the loop's noise injection perturbs the policy's commands too (noise.during_auto),
     so the crashes and near misses come from varied actions, not only the policy's own.
-    `sets`: `carrt drive --set` overrides for every placement (noise.amplitude=0.8, …)."""
+    `sets`: `carrt drive --set` overrides for every placement (noise.amplitude=0.8, …).
+    `noise`: σ on the expert's take-over commands (the robustness setting's imperfect person)."""
     jobs = []
-    take_over = ("--expert-intervene",) if intervene else ()
+    take_over = ("--expert-intervene", "--expert-noise", str(noise)) if intervene else ()
     take_over += ("--set", "noise.during_auto=true") if explore else ()
     take_over += tuple(arg for item in sets for arg in ("--set", item))
     for i, track in enumerate(tracks):
@@ -178,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             p.add_argument("--model", required=True, help="the policy that drives (.onnx)")
             p.add_argument("--seconds", type=float, default=60.0, help="simulated s per placement")
+        if name == "interventions":
+            p.add_argument("--noise", type=float, default=0.0, help="σ on the take-overs")
         if name == "drives":
             p.add_argument(
                 "--explore", action="store_true",
@@ -201,6 +205,7 @@ def main(argv: list[str] | None = None) -> int:
             jobs = drive_jobs(
                 out, Path(args.model), tracks, layouts, args.seconds, intervene=intervene,
                 explore=getattr(args, "explore", False), sets=tuple(getattr(args, "sets", ())),
+                noise=getattr(args, "noise", 0.0),
             )  # fmt: skip
         out.mkdir(parents=True, exist_ok=True)
         run_jobs(jobs, max(1, args.jobs), args.what)

@@ -137,7 +137,7 @@ class SimPilot:
                 return 0.0, 0.0
         else:
             return 0.0, 0.0
-        steering, throttle = self.expert.act(state)
+        steering, throttle = self._imperfect(self.expert.act(state))  # the same person
         if steering == 0.0 and throttle == 0.0:
             throttle = -1e-3  # centred sticks would not register as a takeover
         return steering, throttle

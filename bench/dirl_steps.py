@@ -1,0 +1,138 @@
+"""The study's steps (bench/dirl_sim.py): each one of the project's own commands, run through
+StudyStep (skipped when its marker exists, so the study resumes), and the plumbing they share.
+
+Split from dirl_sim.py so that the study file reads as its config, its chain and its main.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from bench.study_steps import StudyStep
+
+if TYPE_CHECKING:
+    from bench.dirl_sim import StudyConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# ------------------------------------------------------------------------------- plumbing
+def py(*args: str) -> list[str]:
+    return [sys.executable, *args]
+
+
+def iterate_cmd(cfg: StudyConfig, episodes: list[Path], out: Path, *extra: str) -> list[str]:
+    sets = [arg for item in cfg.iterate_overrides() for arg in ("--set", item)]
+    return py(str(ROOT / "training" / "iterate.py"), "--episodes", *map(str, episodes),
+              "--out", str(out), "--profile", cfg.profile, *sets, *extra)  # fmt: skip
+
+
+def explore_args(cfg: StudyConfig) -> list[str]:
+    """`carrt-sim-data drives` arguments for the exploration noise (none when it is off)."""
+    if not cfg.drive_explore:
+        return []
+    lo, hi = cfg.explore_hold_s
+    sets = (f"noise.fraction={cfg.explore_fraction}", f"noise.amplitude={cfg.explore_amplitude}",
+            f"noise.hold_min_s={lo}", f"noise.hold_max_s={hi}")  # fmt: skip
+    return ["--explore", *(arg for item in sets for arg in ("--set", item))]
+
+
+def frames_in(paths: list[Path]) -> int:
+    from training.sim_data import count_frames
+
+    return count_frames(*paths)
+
+
+def top_up(pool: Path, frames: int) -> list[Path]:
+    """Whole episodes from `pool`, in name order, until they hold at least `frames` frames."""
+    from carrt.episodes.reader import list_episodes, read_episode
+
+    picked, total = [], 0
+    for path in list_episodes([str(pool)]):
+        if total >= frames:
+            break
+        picked.append(Path(path))
+        total += read_episode(path).n
+    if total < frames:
+        raise SystemExit(f"dirl_sim: {pool} holds {total} frames, {frames} needed: more tracks")
+    return picked
+
+
+# ------------------------------------------------------------------------------- the steps
+def demonstrations(cfg: StudyConfig, step: StudyStep, sigma: float, tracks: str, tag: str) -> Path:
+    data = Path(cfg.out) / "data" / f"{tag}-noise{sigma:g}"
+    step(f"{tag}-noise{sigma:g}", py("-m", "training.sim_data", "demos", "--out", str(data),
+         "--tracks", tracks, "--layouts", cfg.layout, "--episodes", str(cfg.expert_episodes),
+         "--noise", str(sigma), "--jobs", str(cfg.jobs)), data / ".done")  # fmt: skip
+    return data
+
+
+def evaluate(cfg: StudyConfig, step: StudyStep, name: str, onnx: Path, result: Path,
+             same_as: Path | None = None) -> dict:  # fmt: skip
+    """`carrt eval` of a policy (a run's own, the one chosen by driving, or a candidate) on the
+    held-out placements (one simulator seed), into `result`. `same_as`: the result of an
+    evaluated policy with byte-identical weights (an iteration that kept its start), whose laps
+    these are: driving is deterministic, so they are copied, not driven again."""
+    marker = result.with_name(f".done-{result.stem}")
+    if same_as is not None and not marker.exists() and not step.report_only:
+        shutil.copy2(same_as, result)
+        marker.touch()
+        step.reuse(
+            f"eval-{name}", f"the laps of {same_as.parent.name}/{same_as.name} (same weights)"
+        )
+    else:
+        step(f"eval-{name}", py("-m", "carrt", "eval", "--model", str(onnx),
+             "--layout", cfg.layout, "--tracks", cfg.eval_tracks, "--seconds",
+             str(cfg.eval_seconds), "--seeds", "0", "--jobs", str(cfg.step_jobs()), "--json",
+             str(result)), marker)  # fmt: skip
+    return json.loads(result.read_text())
+
+
+def select(cfg: StudyConfig, step: StudyStep, name: str, run: Path, start: Path,
+           data: list[Path], imitated: Path | None = None) -> Path:  # fmt: skip
+    """The iteration's policy: with select_by_driving, the best of the policy the iteration
+    started from, the policy its imitation made (`imitated`, with reimitate) and refinement's
+    candidates, driven on the validation placements (OUT run/selected, a run directory the next
+    --init reads); else the run's own last policy. The chain's earlier selections are reused:
+    the start was driven there already (it was chosen there)."""
+    if not cfg.select_by_driving:
+        return run
+    chosen = run / "selected"
+    kept = run.glob("candidates/refine*.pt")  # refine<step>.pt, in step order
+    candidates = sorted(kept, key=lambda p: int(p.stem.removeprefix("refine")))
+    earlier = sorted(run.parent.glob("*/selected/selection.json"))
+    step(f"select-{name}", py("-m", "training.select_by_driving", "--out", str(chosen),
+         "--candidates", f"start={start / 'policy.pt'}",
+         *([f"imitated={imitated}"] if imitated else []), *map(str, candidates),
+         "--episodes", *map(str, data), "--layout", cfg.layout, "--tracks", cfg.select_tracks,
+         "--seconds", str(cfg.select_seconds), "--jobs", str(cfg.step_jobs()),
+         "--keep", str(run / "world_model.pt"), "--reuse", *map(str, earlier)),
+         chosen / ".done")  # fmt: skip
+    return chosen
+
+
+def iteration_drives(
+    cfg: StudyConfig, step: StudyStep, tag: str, sigma: float, k: int, previous: Path
+) -> list[Path]:
+    """Iteration k's new episodes: the previous policy drives the training placements alone
+    with exploration noise (every crash labelled: the world model's examples) and, with
+    takeover_seconds, again with the expert taking over before a crash (labelled states the
+    policy reached, with the demonstrations' σ)."""
+    model = str(previous / "policy.onnx")
+    drives = Path(cfg.out) / "data" / f"drives-{tag}-iter{k}"
+    step(f"drive-{tag}-iter{k}", py("-m", "training.sim_data", "drives", "--model", model,
+         "--out", str(drives), "--tracks", cfg.train_tracks, "--layouts", cfg.layout,
+         "--seconds", str(cfg.drive_seconds), "--jobs", str(cfg.step_jobs()),
+         *explore_args(cfg)), drives / ".done")  # fmt: skip
+    if not cfg.takeover_seconds:
+        return [drives]
+    takeovers = Path(cfg.out) / "data" / f"takeovers-{tag}-iter{k}"
+    step(f"takeovers-{tag}-iter{k}", py("-m", "training.sim_data", "interventions", "--model",
+         model, "--out", str(takeovers), "--tracks", cfg.train_tracks, "--layouts", cfg.layout,
+         "--seconds", str(cfg.takeover_seconds), "--noise", str(sigma),
+         "--jobs", str(cfg.step_jobs())), takeovers / ".done")  # fmt: skip
+    return [drives, takeovers]
