@@ -1,6 +1,6 @@
 """The paper's simulation study on carrt's simulator: imitation learning against DIRL, at scale.
 
-    python -m bench.dirl_sim                        # the study (make study; 137 min, 2 cores)
+    python -m bench.dirl_sim                        # the study (make study; > 137 min, 2 cores)
     python -m bench.dirl_sim --quick                # every step, tiny profile, minutes
     python -m bench.dirl_sim --set seeds=0,1,2 --set iterations=3
 
