@@ -18,6 +18,7 @@ if TYPE_CHECKING:
     from bench.dirl_sim import StudyConfig
 
 ROOT = Path(__file__).resolve().parents[1]
+DRIVE_SEED_STRIDE = 100_000  # iteration k drives with simulator seeds placement + stride·(k−1)
 
 
 # ------------------------------------------------------------------------------- plumbing
@@ -121,18 +122,20 @@ def iteration_drives(
     """Iteration k's new episodes: the previous policy drives the training placements alone
     with exploration noise (every crash labelled: the world model's examples) and, with
     takeover_seconds, again with the expert taking over before a crash (labelled states the
-    policy reached, with the demonstrations' σ)."""
+    policy reached, with the demonstrations' σ). Each iteration drives with its own simulator
+    seeds: an iteration that kept its start would otherwise record the same episodes again."""
     model = str(previous / "policy.onnx")
+    seeds = ("--seed-offset", str(DRIVE_SEED_STRIDE * (k - 1)))  # iteration 1: the placement
     drives = Path(cfg.out) / "data" / f"drives-{tag}-iter{k}"
     step(f"drive-{tag}-iter{k}", py("-m", "training.sim_data", "drives", "--model", model,
          "--out", str(drives), "--tracks", cfg.train_tracks, "--layouts", cfg.layout,
          "--seconds", str(cfg.drive_seconds), "--jobs", str(cfg.step_jobs()),
-         *explore_args(cfg)), drives / ".done")  # fmt: skip
+         *seeds, *explore_args(cfg)), drives / ".done")  # fmt: skip
     if not cfg.takeover_seconds:
         return [drives]
     takeovers = Path(cfg.out) / "data" / f"takeovers-{tag}-iter{k}"
     step(f"takeovers-{tag}-iter{k}", py("-m", "training.sim_data", "interventions", "--model",
          model, "--out", str(takeovers), "--tracks", cfg.train_tracks, "--layouts", cfg.layout,
          "--seconds", str(cfg.takeover_seconds), "--noise", str(sigma),
-         "--jobs", str(cfg.step_jobs())), takeovers / ".done")  # fmt: skip
+         "--jobs", str(cfg.step_jobs()), *seeds), takeovers / ".done")  # fmt: skip
     return [drives, takeovers]

@@ -93,6 +93,12 @@ def test_an_iteration_drives_alone_then_with_the_noisy_person_taking_over(tmp_pa
     assert _flag(helped, "--seconds") == "8.0" and _flag(helped, "--model").endswith(
         "dirl1/policy.onnx"
     )
+    assert _flag(alone, "--seed-offset") == _flag(helped, "--seed-offset") == "100000"
+    first = _Steps()
+    dirl_steps.iteration_drives(cfg, first, "noise1-seed0", 1.0, 1, tmp_path / "il")
+    assert {_flag(c, "--seed-offset") for c in first.commands.values()} == {"0"}, (
+        "iteration 1 keeps the placement's seed; later ones new seeds, new episodes"
+    )
     off = dataclasses.replace(cfg, takeover_seconds=0.0)
     assert len(dirl_steps.iteration_drives(off, _Steps(), "t", 0.0, 1, tmp_path)) == 1
 

@@ -51,6 +51,11 @@ def test_take_overs_carry_the_demonstrators_noise_to_every_placement(tmp_path):
         assert job.argv[job.argv.index("--expert-noise") + 1] == "0.5"
         args = build_parser().parse_args(list(job.argv))
         assert args.expert_noise == 0.5 and args.expert_intervene
+    later = sim_data.drive_jobs(tmp_path, model, [1000], ["hard"], 8.0, intervene=True,
+                                seed_offset=100_000)  # fmt: skip
+    argv = later[0].argv
+    assert argv[argv.index("--seed") + 1] == "101000", "another drive of the same placement"
+    assert argv[argv.index("--track-seed") + 1] == "1000"
     alone = sim_data.drive_jobs(tmp_path, model, [1000], ["hard"], 8.0, intervene=False)
     assert "--expert-noise" not in alone[0].argv, "no person, no noise of theirs"
 

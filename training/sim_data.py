@@ -94,13 +94,16 @@ def drive_jobs(
     explore: bool = False,
     sets: tuple[str, ...] = (),
     noise: float = 0.0,
+    seed_offset: int = 0,
 ) -> list[Job]:
     """The policy drives each placement; with `intervene` the expert takes over before a crash,
     without it every crash is recorded (labelled, then the auto-reset) for the world model.
     `explore`: the loop's noise injection perturbs the policy's commands too (noise.during_auto),
     so the crashes and near misses come from varied actions, not only the policy's own.
     `sets`: `carrt drive --set` overrides for every placement (noise.amplitude=0.8, …).
-    `noise`: σ on the expert's take-over commands (the robustness setting's imperfect person)."""
+    `noise`: σ on the expert's take-over commands (the robustness setting's imperfect person).
+    `seed_offset`: added to each placement's simulator seed (noise, starts, camera phase), so a
+    later iteration whose policy is unchanged still drives new episodes, not the same ones."""
     jobs = []
     take_over = ("--expert-intervene", "--expert-noise", str(noise)) if intervene else ()
     take_over += ("--set", "noise.during_auto=true") if explore else ()
@@ -108,7 +111,8 @@ def drive_jobs(
     for i, track in enumerate(tracks):
         layout = layout_for(i, layouts)
         argv = ("drive", "--sim", "--autopilot", *take_over, "--model", str(model),
-                "--record", "--seed", str(track), "--layout", layout, "--track-seed", str(track),
+                "--record", "--seed", str(track + seed_offset), "--layout", layout,
+                "--track-seed", str(track),
                 "--out", str(out), "--duration", str(seconds))  # fmt: skip
         jobs.append(Job(argv, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}"))
     return jobs
@@ -180,6 +184,10 @@ def main(argv: list[str] | None = None) -> int:
         else:
             p.add_argument("--model", required=True, help="the policy that drives (.onnx)")
             p.add_argument("--seconds", type=float, default=60.0, help="simulated s per placement")
+            p.add_argument(
+                "--seed-offset", type=int, default=0,
+                help="added to every placement's simulator seed (another drive, same placements)",
+            )  # fmt: skip
         if name == "interventions":
             p.add_argument("--noise", type=float, default=0.0, help="σ on the take-overs")
         if name == "drives":
@@ -205,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
             jobs = drive_jobs(
                 out, Path(args.model), tracks, layouts, args.seconds, intervene=intervene,
                 explore=getattr(args, "explore", False), sets=tuple(getattr(args, "sets", ())),
-                noise=getattr(args, "noise", 0.0),
+                noise=getattr(args, "noise", 0.0), seed_offset=args.seed_offset,
             )  # fmt: skip
         out.mkdir(parents=True, exist_ok=True)
         run_jobs(jobs, max(1, args.jobs), args.what)
