@@ -91,6 +91,11 @@ class StudyConfig:
     iterations: int = 3  # DIRL iterations (σ = 0)
     robustness_iterations: int = 1  # DIRL iterations for σ > 0
     drive_seconds: float = 15.0  # simulated s per training placement per DIRL iteration
+    # Where iteration k drives (its exploration drives and its take-overs): entry k−1, e.g.
+    # 1040-1053,1054-1067 (the placements IL at equal frames takes its extra demonstrations
+    # from first: the person moved the buckets, and both arms see the new placements).
+    # Empty: train_tracks, the same placements as the demonstrations every iteration.
+    iteration_tracks: tuple[str, ...] = ()
     # Noise on the policy's commands in those drives (noise.during_auto): without it steering
     # is a function of the place and the world model learns its collision risk backwards
     # (docs/architecture.md, "what the world model can learn"); the paper's ±0.3 half the time
@@ -291,6 +296,9 @@ def parse(argv: list[str] | None) -> StudyConfig:
         cfg = apply_sets(cfg, a.set, "StudyConfig in bench/dirl_sim.py")
     except UserError as exc:
         p.error(str(exc))
+    longest = max(cfg.iterations, cfg.robustness_iterations)
+    if cfg.iteration_tracks and len(cfg.iteration_tracks) < longest:
+        p.error(f"iteration_tracks: {len(cfg.iteration_tracks)} entries for {longest} iterations")
     return dataclasses.replace(cfg, report_only=a.report)
 
 

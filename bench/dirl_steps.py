@@ -119,23 +119,25 @@ def select(cfg: StudyConfig, step: StudyStep, name: str, run: Path, start: Path,
 def iteration_drives(
     cfg: StudyConfig, step: StudyStep, tag: str, sigma: float, k: int, previous: Path
 ) -> list[Path]:
-    """Iteration k's new episodes: the previous policy drives the training placements alone
-    with exploration noise (every crash labelled: the world model's examples) and, with
+    """Iteration k's new episodes: the previous policy drives the training placements (or
+    iteration_tracks' k-th entry) alone with exploration noise (every crash labelled: the
+    world model's examples) and, with
     takeover_seconds, again with the expert taking over before a crash (labelled states the
     policy reached, with the demonstrations' σ). Each iteration drives with its own simulator
     seeds: an iteration that kept its start would otherwise record the same episodes again."""
     model = str(previous / "policy.onnx")
     seeds = ("--seed-offset", str(DRIVE_SEED_STRIDE * (k - 1)))  # iteration 1: the placement
+    tracks = cfg.iteration_tracks[k - 1] if cfg.iteration_tracks else cfg.train_tracks
     drives = Path(cfg.out) / "data" / f"drives-{tag}-iter{k}"
     step(f"drive-{tag}-iter{k}", py("-m", "training.sim_data", "drives", "--model", model,
-         "--out", str(drives), "--tracks", cfg.train_tracks, "--layouts", cfg.layout,
+         "--out", str(drives), "--tracks", tracks, "--layouts", cfg.layout,
          "--seconds", str(cfg.drive_seconds), "--jobs", str(cfg.step_jobs()),
          *seeds, *explore_args(cfg)), drives / ".done")  # fmt: skip
     if not cfg.takeover_seconds:
         return [drives]
     takeovers = Path(cfg.out) / "data" / f"takeovers-{tag}-iter{k}"
     step(f"takeovers-{tag}-iter{k}", py("-m", "training.sim_data", "interventions", "--model",
-         model, "--out", str(takeovers), "--tracks", cfg.train_tracks, "--layouts", cfg.layout,
+         model, "--out", str(takeovers), "--tracks", tracks, "--layouts", cfg.layout,
          "--seconds", str(cfg.takeover_seconds), "--noise", str(sigma),
          "--jobs", str(cfg.step_jobs()), *seeds), takeovers / ".done")  # fmt: skip
     return [drives, takeovers]

@@ -14,6 +14,7 @@ import argparse
 import contextlib
 import json
 import logging
+import math
 import secrets
 import signal
 import threading
@@ -71,7 +72,7 @@ def _expert_noise_argument(parser: argparse.ArgumentParser, when: str) -> None:
     demonstrator does not become a clean one when it takes over from the policy."""
     parser.add_argument(
         "--expert-noise",
-        type=_non_negative,
+        type=finite_non_negative,
         default=0.0,
         metavar="SIGMA",
         help=f"{when}, add Gaussian noise of this σ to every expert command (the paper's "
@@ -79,13 +80,15 @@ def _expert_noise_argument(parser: argparse.ArgumentParser, when: str) -> None:
     )
 
 
-def _non_negative(text: str) -> float:
+def finite_non_negative(text: str) -> float:
+    """An argparse type for a σ or a duration: NaN and infinities are bad input, like negatives
+    (argparse then ends with the option's name and exit 2)."""
     try:
         value = float(text)
     except ValueError:
         value = -1.0
-    if not value >= 0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
     return value
 
 

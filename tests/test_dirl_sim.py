@@ -99,8 +99,25 @@ def test_an_iteration_drives_alone_then_with_the_noisy_person_taking_over(tmp_pa
     assert {_flag(c, "--seed-offset") for c in first.commands.values()} == {"0"}, (
         "iteration 1 keeps the placement's seed; later ones new seeds, new episodes"
     )
+    assert {_flag(c, "--tracks") for c in steps.commands.values()} == {cfg.train_tracks}
     off = dataclasses.replace(cfg, takeover_seconds=0.0)
     assert len(dirl_steps.iteration_drives(off, _Steps(), "t", 0.0, 1, tmp_path)) == 1
+
+
+def test_each_iteration_can_drive_on_placements_of_its_own(tmp_path, capsys):
+    """iteration_tracks: iteration k's drives and take-overs on its k-th entry (buckets moved);
+    fewer entries than iterations is refused before anything runs."""
+    tracks = "iteration_tracks=1040-1053,1054-1067"
+    cfg = dirl_sim.parse(["--set", f"out={tmp_path}", "--set", tracks, "--set", "iterations=2"])
+    for k, expected in ((1, "1040-1053"), (2, "1054-1067")):
+        steps = _Steps()
+        dirl_steps.iteration_drives(cfg, steps, "noise0-seed0", 0.0, k, tmp_path / "run")
+        assert len(steps.commands) == 2
+        assert {_flag(c, "--tracks") for c in steps.commands.values()} == {expected}
+    with pytest.raises(SystemExit) as exit_:
+        dirl_sim.parse(["--set", tracks, "--set", "iterations=3"])
+    assert exit_.value.code == 2
+    assert "iteration_tracks: 2 entries for 3 iterations" in capsys.readouterr().err
 
 
 def test_top_up_takes_whole_episodes_until_the_frames_are_reached(sim_episodes):

@@ -39,6 +39,21 @@ def test_interventions_need_a_model(tmp_path, capsys):
     assert "no such model" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("what", ["demos", "interventions"])
+@pytest.mark.parametrize("sigma", ["-0.5", "nan", "inf"])
+def test_a_noise_that_is_not_a_finite_sigma_is_refused_by_name(tmp_path, capsys, what, sigma):
+    """Checked before any placement runs: one line naming --noise and exit 2, not a failure of
+    every placement's own `carrt` command."""
+    model = tmp_path / "p.onnx"
+    model.write_bytes(b"")
+    extra = ["--model", str(model)] if what == "interventions" else []
+    with pytest.raises(SystemExit) as exit_:
+        sim_data.main([what, "--out", str(tmp_path / "out"), "--noise", sigma, *extra])
+    assert exit_.value.code == 2
+    assert "argument --noise: expected a finite number >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists(), "nothing recorded"
+
+
 def test_take_overs_carry_the_demonstrators_noise_to_every_placement(tmp_path):
     """`interventions --noise σ`: each placement's `carrt drive` gets --expert-noise σ, and
     the parser of `carrt drive` accepts it (the robustness setting's take-overs)."""

@@ -37,6 +37,7 @@ from tqdm import tqdm
 from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import EXIT_USAGE, UserError
 from carrt.eval_cmd import parse_int_list
+from carrt.session import finite_non_negative
 
 # Held out, never recorded for training: `carrt eval`'s default 100-104, and 105-124, which the
 # study adds since 5 placements alone judged DIRL against IL by their own noise.
@@ -180,7 +181,10 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--jobs", type=int, default=2, help="processes (default: 2)")
         if name == "demos":
             p.add_argument("--episodes", type=int, default=8, help="episodes per placement")
-            p.add_argument("--noise", type=float, default=0.0, help="σ on the expert's commands")
+            p.add_argument(
+                "--noise", type=finite_non_negative, default=0.0,
+                help="σ on the expert's commands",
+            )  # fmt: skip
         else:
             p.add_argument("--model", required=True, help="the policy that drives (.onnx)")
             p.add_argument("--seconds", type=float, default=60.0, help="simulated s per placement")
@@ -189,7 +193,9 @@ def main(argv: list[str] | None = None) -> int:
                 help="added to every placement's simulator seed (another drive, same placements)",
             )  # fmt: skip
         if name == "interventions":
-            p.add_argument("--noise", type=float, default=0.0, help="σ on the take-overs")
+            p.add_argument(
+                "--noise", type=finite_non_negative, default=0.0, help="σ on the take-overs"
+            )
         if name == "drives":
             p.add_argument(
                 "--explore", action="store_true",
