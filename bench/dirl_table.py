@@ -125,7 +125,7 @@ def plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, ax = plt.subplots(figsize=(9.0, 4.2))
     for (sigma, model), rs in groups(rows).items():
         frames = [r["frames"] for r in rs]
         completion = [r["aggregate"]["completion_ratio"]["mean"] for r in rs]
@@ -139,7 +139,7 @@ def plot(rows: list[dict], path: Path) -> None:
     ax.set_title("IL and DIRL iterations, mean ± std over seeds")
     ax.grid(alpha=0.3)
     if rows:  # a --report before any model finished has nothing to label
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # off the points
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
