@@ -73,6 +73,11 @@ def test_take_overs_carry_the_demonstrators_noise_to_every_placement(tmp_path):
     assert argv[argv.index("--track-seed") + 1] == "1000"
     alone = sim_data.drive_jobs(tmp_path, model, [1000], ["hard"], 8.0, intervene=False)
     assert "--expert-noise" not in alone[0].argv, "no person, no noise of theirs"
+    infinite = list(jobs[0].argv)
+    infinite[infinite.index("--expert-noise") + 1] = "inf"
+    with pytest.raises(SystemExit) as exit_:
+        build_parser().parse_args(infinite)
+    assert exit_.value.code == 2, "carrt drive refuses an infinite σ too"
 
 
 def test_more_placements_than_a_worker_runs_all_finish(tmp_path, monkeypatch):
