@@ -121,10 +121,10 @@ def iteration_drives(
 ) -> list[Path]:
     """Iteration k's new episodes: the previous policy drives the training placements (or
     iteration_tracks' k-th entry) alone with exploration noise (every crash labelled: the
-    world model's examples) and, with
-    takeover_seconds, again with the expert taking over before a crash (labelled states the
-    policy reached, with the demonstrations' σ). Each iteration drives with its own simulator
-    seeds: an iteration that kept its start would otherwise record the same episodes again."""
+    world model's examples) and, with takeover_seconds, again with the expert taking over
+    before a crash (labelled states the policy reached, with the demonstrations' σ). Each
+    iteration drives with its own simulator seeds: an iteration that kept its start would
+    otherwise record the same episodes again."""
     model = str(previous / "policy.onnx")
     seeds = ("--seed-offset", str(DRIVE_SEED_STRIDE * (k - 1)))  # iteration 1: the placement
     tracks = cfg.iteration_tracks[k - 1] if cfg.iteration_tracks else cfg.train_tracks

@@ -14,7 +14,6 @@ import argparse
 import contextlib
 import json
 import logging
-import math
 import secrets
 import signal
 import threading
@@ -24,6 +23,7 @@ from typing import Any
 
 from carrt import __version__, layouts
 from carrt import config as car_config
+from carrt.arg_types import finite_non_negative
 from carrt.errors import UserError
 from carrt.progress import recording_bar
 from carrt.rig import open_car_rig
@@ -78,18 +78,6 @@ def _expert_noise_argument(parser: argparse.ArgumentParser, when: str) -> None:
         help=f"{when}, add Gaussian noise of this σ to every expert command (the paper's "
         "imperfect demonstrations: 0.5, 1.0)",
     )
-
-
-def finite_non_negative(text: str) -> float:
-    """An argparse type for a σ or a duration: NaN and infinities are bad input, like negatives
-    (argparse then ends with the option's name and exit 2)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
-    return value
 
 
 def _common_arguments(parser: argparse.ArgumentParser) -> None:

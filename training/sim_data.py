@@ -34,10 +34,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from carrt.arg_types import finite_non_negative
 from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import EXIT_USAGE, UserError
 from carrt.eval_cmd import parse_int_list
-from carrt.session import finite_non_negative
 
 # Held out, never recorded for training: `carrt eval`'s default 100-104, and 105-124, which the
 # study adds since 5 placements alone judged DIRL against IL by their own noise.
