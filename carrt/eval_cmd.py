@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
 from carrt import layouts
+from carrt.arg_types import finite_positive
 from carrt.errors import UserError
 
 
@@ -68,20 +68,13 @@ def parse_int_list(text: str, what: str) -> list[int]:
     return out
 
 
-def _positive_seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise UserError(f"--seconds: expected a finite number > 0, got {text!r}")
-    return value
-
-
 def run_eval(args: argparse.Namespace) -> int:
     tracks = parse_int_list(args.tracks, "tracks")
     seeds = parse_int_list(args.seeds, "seeds")
-    seconds = _positive_seconds(args.seconds)
+    try:  # checked here, not by argparse: carrt's errors are one line (no usage block)
+        seconds = finite_positive(args.seconds)
+    except argparse.ArgumentTypeError as exc:
+        raise UserError(f"--seconds: {exc}") from None
     if args.jobs < 1:
         raise UserError(f"--jobs: expected at least 1, got {args.jobs}")
     model = None

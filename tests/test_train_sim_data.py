@@ -54,6 +54,22 @@ def test_a_noise_that_is_not_a_finite_sigma_is_refused_by_name(tmp_path, capsys,
     assert not (tmp_path / "out").exists(), "nothing recorded"
 
 
+@pytest.mark.parametrize("what", ["drives", "interventions"])
+@pytest.mark.parametrize("seconds", ["0", "-3", "nan", "inf"])
+def test_a_duration_that_is_not_finite_and_positive_is_refused_by_name(
+    tmp_path, capsys, what, seconds
+):
+    """NaN or infinite --seconds used to reach every placement's `carrt drive --duration`."""
+    model = tmp_path / "p.onnx"
+    model.write_bytes(b"")
+    argv = [what, "--out", str(tmp_path / "out"), "--model", str(model), "--seconds", seconds]
+    with pytest.raises(SystemExit) as exit_:
+        sim_data.main(argv)
+    assert exit_.value.code == 2
+    assert "argument --seconds: expected a finite number > 0" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists(), "nothing recorded"
+
+
 def test_take_overs_carry_the_demonstrators_noise_to_every_placement(tmp_path):
     """`interventions --noise σ`: each placement's `carrt drive` gets --expert-noise σ, and
     the parser of `carrt drive` accepts it (the robustness setting's take-overs)."""

@@ -34,7 +34,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from carrt.arg_types import finite_non_negative
+from carrt.arg_types import finite_non_negative, finite_positive
 from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import EXIT_USAGE, UserError
 from carrt.eval_cmd import parse_int_list
@@ -187,7 +187,9 @@ def main(argv: list[str] | None = None) -> int:
             )  # fmt: skip
         else:
             p.add_argument("--model", required=True, help="the policy that drives (.onnx)")
-            p.add_argument("--seconds", type=float, default=60.0, help="simulated s per placement")
+            p.add_argument(
+                "--seconds", type=finite_positive, default=60.0, help="simulated s per placement"
+            )
             p.add_argument(
                 "--seed-offset", type=int, default=0,
                 help="added to every placement's simulator seed (another drive, same placements)",
