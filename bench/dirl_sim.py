@@ -23,9 +23,11 @@ Top to bottom, every step one of the project's own commands (logged under OUT/lo
    and scores the world model against the simulator (training/counterfactual.py, placements
    200-204, never the evaluation ones). Refinement keeps a candidate every 100 steps; each, the
    policy imitation made and the policy the iteration started from are driven on validation
-   placements 200-219 and the best is the iteration's policy (training/select_by_driving.py;
-   select_by_driving=false: the last step's). The policy imitation made is also evaluated as
-   its own row ("before refinement"): what refinement adds beyond the take-overs.
+   placements (200-219, 220-239, 240-259 for iterations 1-3); the policy imitation made is kept
+   unless a candidate beats it by two standard errors of the paired difference
+   (training/select_by_driving.py; select_by_driving=false: the last step's). The policy
+   imitation made is also evaluated as its own row ("before refinement"): what refinement adds
+   beyond the take-overs.
    takeover_seconds=0 reimitate_steps=0 is the paper's iteration (imitation once, drives
    without a person). DIRL -unc: iteration 1's world model and imitated policy, refinement
    without the uncertainty term, chosen the same way.
@@ -137,7 +139,15 @@ class StudyConfig:
     # is the iteration's policy (training/select_by_driving.py). False: the last step's policy.
     select_by_driving: bool = True
     refine_candidates_every: int = 100
-    select_tracks: str = "200-219"  # validation placements: neither trained on nor evaluated
+    # Validation placements (neither trained on nor evaluated): entry k−1 for iteration k, one
+    # entry for all. Each iteration its own: the start was chosen on the previous iteration's
+    # placements, and its numbers there are biased upwards by that choice (winner's curse).
+    select_tracks: tuple[str, ...] = ("200-219", "220-239", "240-259")
+    # The policy imitation made ("imitated", with reimitate; else the start) is kept unless a
+    # candidate beats it by this many standard errors of the paired per-placement score
+    # (training/select_by_driving.py). 0: the best score, the rule of the studies until
+    # 2026-11-24's seventh run.
+    select_margin_z: float = 2.0
     select_seconds: float = 30.0  # simulated s per validation placement and candidate
     eval_seconds: float = 60.0  # simulated seconds per held-out placement (a lap is ~7 s)
     threads: int = 2  # torch threads in all
@@ -164,7 +174,7 @@ QUICK = dict(
     train_tracks="1000", extra_tracks="1001-1002", eval_tracks="100", counterfactual_tracks="200",
     counterfactual_starts=2, expert_episodes=2, demo_noise=(0.0, 0.5), iterations=2,
     drive_seconds=5.0, imitation_steps=30, world_model_steps=30, world_model_steps_next=10,
-    refine_steps=10, eval_seconds=10.0, refine_candidates_every=5, select_tracks="200",
+    refine_steps=10, eval_seconds=10.0, refine_candidates_every=5, select_tracks=("200",),
     select_seconds=5.0, takeover_seconds=5.0, reimitate_steps=10,
 )  # fmt: skip
 
@@ -246,7 +256,7 @@ def chain(
              str(previous), *again, "--set", f"world_model_steps={wm_steps}",
              "--set", f"refine_steps={cfg.refine_steps}"), run / ".done")  # fmt: skip
         imitated = run / "checkpoints" / "imitation.pt" if reimitate else None
-        policy = select(cfg, step, f"{tag}-dirl{k}", run, previous, data, imitated)
+        policy = select(cfg, step, f"{tag}-dirl{k}", k, run, previous, data, imitated)
         row(f"DIRL iter {k}", k, run, data, policy)
         if imitated and cfg.select_by_driving:
             row(before_refinement(k), k, run, data, policy, candidate="imitated")
@@ -257,7 +267,7 @@ def chain(
                  str(run / "checkpoints" / "world_model.pt"), "--no-uncertainty",
                  "--set", "world_model_steps=0", "--set", f"refine_steps={cfg.refine_steps}"),
                  unc / ".done")  # fmt: skip
-            unc_policy = select(cfg, step, f"{tag}-unc1", unc, previous, data, imitated)
+            unc_policy = select(cfg, step, f"{tag}-unc1", 1, unc, previous, data, imitated)
             row("DIRL -unc iter 1", 1, unc, data, unc_policy)
         # Imitation on as many frames as this iteration had, from the second demonstration
         # pool (whole episodes in name order, so iteration k's set extends iteration k-1's).
@@ -299,6 +309,8 @@ def parse(argv: list[str] | None) -> StudyConfig:
     longest = max(cfg.iterations, cfg.robustness_iterations)
     if cfg.iteration_tracks and len(cfg.iteration_tracks) < longest:
         p.error(f"iteration_tracks: {len(cfg.iteration_tracks)} entries for {longest} iterations")
+    if len(cfg.select_tracks) not in (1, *range(longest, longest + 100)):
+        p.error(f"select_tracks: {len(cfg.select_tracks)} entries for {longest} iterations")
     return dataclasses.replace(cfg, report_only=a.report)
 
 

@@ -93,23 +93,26 @@ def evaluate(cfg: StudyConfig, step: StudyStep, name: str, onnx: Path, result: P
     return json.loads(result.read_text())
 
 
-def select(cfg: StudyConfig, step: StudyStep, name: str, run: Path, start: Path,
+def select(cfg: StudyConfig, step: StudyStep, name: str, k: int, run: Path, start: Path,
            data: list[Path], imitated: Path | None = None) -> Path:  # fmt: skip
-    """The iteration's policy: with select_by_driving, the best of the policy the iteration
-    started from, the policy its imitation made (`imitated`, with reimitate) and refinement's
-    candidates, driven on the validation placements (OUT run/selected, a run directory the next
-    --init reads); else the run's own last policy. The chain's earlier selections are reused:
-    the start was driven there already (it was chosen there)."""
+    """Iteration k's policy: with select_by_driving, the policy its imitation made (`imitated`,
+    with reimitate; else the policy it started from) unless the start or one of refinement's
+    candidates drives better by select_margin_z standard errors on iteration k's validation
+    placements (OUT run/selected, a run directory the next --init reads); else the run's own last
+    policy. Earlier selections are reused where they drove the same placements."""
     if not cfg.select_by_driving:
         return run
     chosen = run / "selected"
     kept = run.glob("candidates/refine*.pt")  # refine<step>.pt, in step order
     candidates = sorted(kept, key=lambda p: int(p.stem.removeprefix("refine")))
     earlier = sorted(run.parent.glob("*/selected/selection.json"))
+    tracks = cfg.select_tracks[min(k, len(cfg.select_tracks)) - 1]
+    incumbent = ["--incumbent", "imitated"] if imitated else []
     step(f"select-{name}", py("-m", "training.select_by_driving", "--out", str(chosen),
          "--candidates", f"start={start / 'policy.pt'}",
          *([f"imitated={imitated}"] if imitated else []), *map(str, candidates),
-         "--episodes", *map(str, data), "--layout", cfg.layout, "--tracks", cfg.select_tracks,
+         *incumbent, "--margin-z", str(cfg.select_margin_z),
+         "--episodes", *map(str, data), "--layout", cfg.layout, "--tracks", tracks,
          "--seconds", str(cfg.select_seconds), "--jobs", str(cfg.step_jobs()),
          "--keep", str(run / "world_model.pt"), "--reuse", *map(str, earlier)),
          chosen / ".done")  # fmt: skip

@@ -120,6 +120,30 @@ def test_each_iteration_can_drive_on_placements_of_its_own(tmp_path, capsys):
     assert "iteration_tracks: 2 entries for 3 iterations" in capsys.readouterr().err
 
 
+def test_each_iteration_selects_on_validation_placements_of_its_own(tmp_path, capsys):
+    """select_tracks: iteration k's selection drives its k-th entry (the start's numbers on the
+    placements that chose it are biased by that choice), keeping the imitated policy unless a
+    candidate wins by select_margin_z standard errors; one entry serves every iteration."""
+    cfg = dirl_sim.parse(["--set", f"out={tmp_path}", "--set", "iterations=3"])
+    run, start = tmp_path / "dirl2", tmp_path / "dirl1"
+    steps = _Steps()
+    imitated = run / "checkpoints" / "imitation.pt"
+    dirl_steps.select(cfg, steps, "noise0-seed0-dirl2", 2, run, start, [tmp_path], imitated)
+    (command,) = steps.commands.values()
+    assert _flag(command, "--tracks") == "220-239" != cfg.select_tracks[0]
+    assert _flag(command, "--incumbent") == "imitated" and f"imitated={imitated}" in command
+    assert _flag(command, "--margin-z") == "2.0"
+    one = dirl_sim.parse(["--set", f"out={tmp_path}", "--set", "select_tracks=200-219"])
+    steps = _Steps()
+    dirl_steps.select(one, steps, "noise0-seed0-dirl3", 3, run, start, [tmp_path])
+    (command,) = steps.commands.values()
+    assert _flag(command, "--tracks") == "200-219" and "--incumbent" not in command
+    with pytest.raises(SystemExit) as exit_:
+        dirl_sim.parse(["--set", "select_tracks=200-219,220-239", "--set", "iterations=3"])
+    assert exit_.value.code == 2
+    assert "select_tracks: 2 entries for 3 iterations" in capsys.readouterr().err
+
+
 def test_top_up_takes_whole_episodes_until_the_frames_are_reached(sim_episodes):
     from carrt.episodes.reader import list_episodes, read_episode
 

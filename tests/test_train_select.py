@@ -1,5 +1,6 @@
 """Choosing how far to refine by driving: refinement keeps candidates, selection drives each one
-on validation placements through `carrt eval` and keeps the best (training/select_by_driving.py).
+on validation placements through `carrt eval` and keeps the incumbent unless another beats it by
+more than the placements' noise (training/select_by_driving.py).
 """
 
 from __future__ import annotations
@@ -53,17 +54,20 @@ def test_refinement_keeps_a_candidate_every_n_steps_the_last_being_the_final_pol
 def test_selection_drives_every_candidate_and_keeps_the_best_scoring_one(
     refined, sim_episodes, tmp_path
 ):
+    """With --margin-z 0 the rule is the plain best score."""
     start, out = refined
     chosen = tmp_path / "selected"
     argv = ["--out", str(chosen), "--candidates", f"start={start / 'policy.pt'}",
             str(out / "candidates" / "refine2.pt"), str(out / "candidates" / "refine4.pt"),
-            "--episodes", str(sim_episodes), "--tracks", "200", "--seconds", "4", "--jobs", "1",
-            "--keep", str(out / "world_model.pt")]  # fmt: skip
+            "--episodes", str(sim_episodes), "--tracks", "200,201", "--seconds", "4",
+            "--jobs", "1", "--margin-z", "0", "--keep", str(out / "world_model.pt")]  # fmt: skip
     assert sel.main(argv) == 0
     selection = json.loads((chosen / "selection.json").read_text())
     assert [c["name"] for c in selection["candidates"]] == ["start", "refine2", "refine4"]
+    assert selection["incumbent"] == "start" and selection["margin_z"] == 0
     for c in selection["candidates"]:  # each one was driven: 4 simulated seconds at 10 Hz
         assert c["aggregate"]["completion_ratio"]["mean"] >= 0.0
+        assert [(r["track"], r["seed"]) for r in c["placements"]] == [(200, 0), (201, 0)]
         assert (chosen / "candidates" / f"{c['name']}.onnx").is_file()
     picked = next(c for c in selection["candidates"] if c["name"] == selection["chosen"])
     assert picked["score"] == max(c["score"] for c in selection["candidates"])
@@ -138,20 +142,51 @@ def test_a_failure_part_way_leaves_out_as_it_was_and_no_staging(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.pt", "selected"]
 
 
-def aggregate(completion: float, collisions: float) -> dict:
-    return {"completion_ratio": {"mean": completion}, "collisions_per_min": {"mean": collisions}}
-
-
-def test_the_score_trades_completion_against_collisions_and_ties_keep_fewer_steps():
-    driven = [
-        {"name": "start", "order": 0, "aggregate": aggregate(0.70, 2.0)},  # 0.60
-        {"name": "refine100", "order": 1, "aggregate": aggregate(0.80, 6.0)},  # 0.50
-        {"name": "refine200", "order": 2, "aggregate": aggregate(0.65, 0.0)},  # 0.65
-        {"name": "refine300", "order": 3, "aggregate": aggregate(0.75, 2.0)},  # 0.65, later
+def candidate(name: str, order: int, completions: list[float], collisions: float = 0.0) -> dict:
+    """A driven candidate: one completion per validation placement (tracks 200, 201, ...)."""
+    placements = [
+        {"track": 200 + i, "seed": 0, "completion_ratio": c, "collisions_per_min": collisions}
+        for i, c in enumerate(completions)
     ]
-    assert sel.choose(driven)["name"] == "refine200"
-    assert sel.choose(driven, collision_cost=0.0)["name"] == "refine100"
-    assert sel.choose(driven[:2])["name"] == "start"  # refinement that drives worse is rejected
+    mean = sum(completions) / len(completions)
+    aggregate = {"completion_ratio": {"mean": mean}, "collisions_per_min": {"mean": collisions}}
+    return {"name": name, "order": order, "aggregate": aggregate, "placements": placements}
+
+
+def test_the_plain_best_score_trades_completion_against_collisions_and_ties_keep_fewer_steps():
+    driven = [
+        candidate("start", 0, [0.70, 0.70], 2.0),  # 0.60
+        candidate("refine100", 1, [0.80, 0.80], 6.0),  # 0.50
+        candidate("refine200", 2, [0.65, 0.65], 0.0),  # 0.65
+        candidate("refine300", 3, [0.75, 0.75], 2.0),  # 0.65, later
+    ]
+    assert sel.choose(driven, margin_z=0)["name"] == "refine200"
+    assert sel.choose(driven, collision_cost=0.0, margin_z=0)["name"] == "refine100"
+    assert sel.choose(driven[:2], margin_z=0)["name"] == "start"  # refinement that drives worse
+
+
+def test_a_challenger_must_win_by_more_than_the_placements_noise():
+    """Ahead by 0.05 on average but by +0.45/−0.35 on single placements: noise, the incumbent
+    stays; ahead by 0.04 on every placement alike: a real gain, it wins."""
+    imitated = candidate("imitated", 1, [0.5, 0.9, 0.5, 0.9])
+    lucky = candidate("lucky", 2, [0.95, 0.55, 0.95, 0.55])
+    steady = candidate("steady", 3, [0.54, 0.94, 0.54, 0.94])
+    start = candidate("start", 0, [0.4, 0.8, 0.4, 0.8])
+    assert sel.choose([start, imitated, lucky], incumbent="imitated")["name"] == "imitated"
+    assert lucky["advantage"] == pytest.approx(0.05) and lucky["standard_error"] > 0.2
+    assert start["advantage"] == pytest.approx(-0.1), "the incumbent is the yardstick"
+    assert sel.choose([start, imitated, lucky], incumbent="imitated", margin_z=0)["name"] == "lucky"
+    picked = sel.choose([start, imitated, lucky, steady], incumbent="imitated")
+    assert picked["name"] == "steady" and steady["standard_error"] == pytest.approx(0.0)
+    # Without --incumbent the first candidate is the one to beat: here every other one does.
+    assert sel.choose([start, imitated, steady])["name"] == "steady"
+
+
+def test_one_placement_is_no_evidence_and_keeps_the_incumbent():
+    start, better = candidate("start", 0, [0.5]), candidate("refine100", 1, [0.9])
+    assert sel.choose([start, better])["name"] == "start"
+    assert better["standard_error"] == float("inf")
+    assert sel.choose([start, better], margin_z=0)["name"] == "refine100"
 
 
 @pytest.mark.parametrize(
@@ -161,6 +196,9 @@ def test_the_score_trades_completion_against_collisions_and_ties_keep_fewer_step
         (["--candidates", "a=x.pt", "a=x.pt"], "given twice"),
         (["--candidates", "x.pt", "--tracks", "100-104"], "held out for evaluation"),
         (["--candidates", "x.pt", "--seconds", "nan"], "--seconds must be > 0"),
+        (["--candidates", "x.pt", "--margin-z", "-1"], "--margin-z >= 0"),
+        (["--candidates", "x.pt", "--margin-z", "inf"], "--margin-z >= 0"),
+        (["--candidates", "x.pt", "--incumbent", "imitated"], "no candidate is named 'imitated'"),
         (["--candidates", "x.pt", "--keep", "gone.pt"], "--keep: no such file: gone.pt"),
         (["--candidates", "x.pt", "--reuse", "gone.json"], "--reuse: cannot read gone.json"),
     ],

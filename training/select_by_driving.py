@@ -9,12 +9,20 @@ driving (its rank correlation with the true objective is ~0.3, training/counterf
 past some number of steps it makes the policy drive worse (the study: iterations 2-3 lost
 completion to the policy they started from). So the refinement's candidates (the policy every
 `refine_candidates_every` steps, and the policy it started from) are each exported and driven
-by `carrt eval` on VALIDATION placements, and the best one is kept: refinement that does not
-drive better is rejected. The score is completion − `collision_cost` × collisions per minute
-(one collision a minute costs as much as 5 % of a lap at the default); a tie keeps the earlier
-candidate (fewer refinement steps). On a real car the same choice is a person driving the
-candidates; here the simulator does it on placements that are neither trained on nor the
-evaluation ones (the `hard` layout's 100-124 are refused).
+by `carrt eval` on VALIDATION placements. The score is completion − `collision_cost` ×
+collisions per minute (one collision a minute costs as much as 5 % of a lap at the default).
+
+The INCUMBENT (--incumbent: the policy the iteration's data made, "imitated"; by default the
+first candidate) is kept unless another candidate beats it on the same placements by more than
+--margin-z standard errors of the per-placement score difference (paired: both drove the same
+placements with the same simulator seed); of those that do, the best score wins, a tie the
+earlier one. Why not simply the best score: 20 validation placements measure a candidate's
+completion to about ±0.05, as much as candidates differ, so the maximum of five picks the
+luckiest one (the winner's curse); in the 2026-11-24 study the plain maximum chose a policy
+that drove worse on the held-out placements than the one imitation made, on every seed at
+iteration 1. --margin-z 0 is the plain maximum (ties: the incumbent). On a real car the same
+choice is a person driving the candidates; here the simulator does it on placements that are
+neither trained on nor the evaluation ones (the `hard` layout's 100-124 are refused).
 
 OUT gets policy.pt and policy.onnx of the chosen candidate (plus each --keep file, so OUT is a
 run directory the next iteration's `--init` reads), candidates/<name>.onnx, selection.json with
@@ -23,8 +31,9 @@ every candidate's driving numbers, and nothing at all when something fails.
 --reuse takes earlier selection.json files: a candidate whose checkpoint is byte-identical
 (sha256) to one already driven there on the same layout, placements and seconds takes those
 numbers instead of being driven again (driving is deterministic: the same weights drive the same
-laps). The next iteration's "start" is this iteration's choice, so each selection after the first
-drives one candidate fewer.
+laps). Beware: the next iteration's "start" is this iteration's choice, and its numbers on the
+placements that chose it are biased upwards by the choice itself; the study therefore gives
+each iteration its own validation placements (bench/dirl_sim.py `select_tracks`).
 """
 
 from __future__ import annotations
@@ -43,6 +52,9 @@ from carrt.policy import file_sha256
 from training.sim_data import parse_tracks
 
 COLLISION_COST = 0.05  # completion given up per collision/min in the score
+# A challenger must beat the incumbent by this many standard errors of the paired difference
+# (one-sided, ~2.3 % chance for a candidate that is no better; four challengers: ~9 %).
+MARGIN_Z = 2.0
 
 
 def named_candidates(items: list[str]) -> list[tuple[str, Path]]:
@@ -63,8 +75,9 @@ def named_candidates(items: list[str]) -> list[tuple[str, Path]]:
 
 
 def driven_before(selections: list[Path], layout: str, tracks: list[int], seconds: float) -> dict:
-    """{checkpoint sha256: (aggregate, where)} of every candidate in earlier selection.json files
-    driven on the same layout, placements and seconds (older files without sha256 give none)."""
+    """{checkpoint sha256: (driven, where)} of every candidate in earlier selection.json files
+    driven on the same layout, placements and seconds (`driven`: its aggregate and per-placement
+    numbers; older files without sha256 or per-placement numbers give none)."""
     known: dict[str, tuple[dict, str]] = {}
     for path in selections:
         try:
@@ -75,8 +88,9 @@ def driven_before(selections: list[Path], layout: str, tracks: list[int], second
         if same != (layout, list(tracks), seconds):
             continue
         for c in earlier.get("candidates", []):
-            if "sha256" in c and "aggregate" in c:
-                known.setdefault(c["sha256"], (c["aggregate"], f"{path}:{c['name']}"))
+            if "sha256" in c and "placements" in c:
+                numbers = {"aggregate": c["aggregate"], "placements": c["placements"]}
+                known.setdefault(c["sha256"], (numbers, f"{path}:{c['name']}"))
     return known
 
 
@@ -86,9 +100,56 @@ def score(aggregate: dict, collision_cost: float = COLLISION_COST) -> float:
     return completion - collision_cost * aggregate["collisions_per_min"]["mean"]
 
 
-def choose(driven: list[dict], collision_cost: float = COLLISION_COST) -> dict:
-    """The candidate with the best score; the first one (fewest refinement steps) on a tie."""
-    return max(driven, key=lambda c: (round(score(c["aggregate"], collision_cost), 9), -c["order"]))
+def placement_scores(placements: list[dict], collision_cost: float) -> dict[tuple, float]:
+    """{(track, seed): that drive's score}."""
+    return {
+        (r["track"], r["seed"]): r["completion_ratio"] - collision_cost * r["collisions_per_min"]
+        for r in placements
+    }
+
+
+def paired_advantage(
+    challenger: dict, incumbent: dict, collision_cost: float
+) -> tuple[float, float]:
+    """Mean and standard error of challenger − incumbent score over the placements both drove
+    (standard error inf below two placements: no evidence either way)."""
+    a = placement_scores(challenger["placements"], collision_cost)
+    b = placement_scores(incumbent["placements"], collision_cost)
+    diffs = [a[key] - b[key] for key in a if key in b]
+    n = len(diffs)
+    if n == 0:
+        raise UserError(f"{challenger['name']} and {incumbent['name']} share no placement")
+    mean = sum(diffs) / n
+    if n < 2:
+        return mean, math.inf
+    var = sum((d - mean) ** 2 for d in diffs) / (n - 1)
+    return mean, math.sqrt(var / n)
+
+
+def choose(
+    driven: list[dict],
+    collision_cost: float = COLLISION_COST,
+    incumbent: str | None = None,
+    margin_z: float = MARGIN_Z,
+) -> dict:
+    """The incumbent (by name; None: the first candidate) unless others beat it by more than
+    `margin_z` standard errors of the paired difference: then the best-scoring of those, the
+    earlier one on a tie. Each candidate gets its "advantage" and "standard_error" against
+    the incumbent (0 and 0 for the incumbent itself)."""
+    base = next((c for c in driven if c["name"] == incumbent), None) if incumbent else driven[0]
+    if base is None:
+        raise UserError(f"--incumbent: no candidate is named {incumbent!r}")
+    winners = []
+    for c in driven:
+        mean, se = (0.0, 0.0) if c is base else paired_advantage(c, base, collision_cost)
+        c["advantage"], c["standard_error"] = mean, se
+        if c is not base and mean > 0 and (margin_z == 0 or mean > margin_z * se):
+            winners.append(c)
+    if not winners:
+        return base
+    return max(
+        winners, key=lambda c: (round(score(c["aggregate"], collision_cost), 9), -c["order"])
+    )
 
 
 @contextlib.contextmanager
@@ -117,6 +178,8 @@ def select(
     seconds: float = 30.0,
     jobs: int = 2,
     collision_cost: float = COLLISION_COST,
+    incumbent: str | None = None,
+    margin_z: float = MARGIN_Z,
     keep: tuple[Path, ...] = (),
     reuse: tuple[Path, ...] = (),
 ) -> dict:
@@ -132,18 +195,26 @@ def select(
             onnx = work / f"{name}.onnx"
             export_policy(path, onnx, episodes)
             digest = file_sha256(path)
-            agg, reused = known.get(digest, (None, None))
-            if agg is None:
-                agg = evaluate(onnx, layout, tracks, seconds, (0,), jobs)["aggregate"]
+            numbers, reused = known.get(digest, (None, None))
+            if numbers is None:
+                result = evaluate(onnx, layout, tracks, seconds, (0,), jobs)
+                numbers = {"aggregate": result["aggregate"], "placements": result["runs"]}
+            agg = numbers["aggregate"]
             driven.append({"name": name, "order": order, "checkpoint": str(path),
                            "sha256": digest, "onnx": str(out / "candidates" / onnx.name),
-                           "aggregate": agg, "score": score(agg, collision_cost),
+                           **numbers, "score": score(agg, collision_cost),
                            "reused_from": reused})  # fmt: skip
             completion, per_min = agg["completion_ratio"]["mean"], agg["collisions_per_min"]["mean"]
             how = f" (same weights as {reused})" if reused else ""
             print(f"  {name}: completion {completion:.2f}, {per_min:.1f} collisions/min{how}",
                   flush=True)  # fmt: skip
-        best = choose(driven, collision_cost)
+        best = choose(driven, collision_cost, incumbent, margin_z)
+        base = incumbent or driven[0]["name"]
+        for c in driven:
+            if c["name"] != base:
+                gain, se = c["advantage"], c["standard_error"]
+                print(f"  {c['name']} − {base}: {gain:+.3f} ± {se:.3f} (paired score; "
+                      f"{margin_z:g} standard errors needed)", flush=True)  # fmt: skip
         for extra in keep:
             shutil.copy2(extra, staging / extra.name)
         shutil.copy2(best["checkpoint"], staging / "policy.pt")
@@ -151,7 +222,9 @@ def select(
         selection = {
             "chosen": best["name"], "candidates": driven, "layout": layout, "tracks": tracks,
             "seconds": seconds, "collision_cost": collision_cost,
-            "rule": "max completion − collision_cost × collisions/min; ties: the earlier candidate",
+            "incumbent": base, "margin_z": margin_z,
+            "rule": "score = completion − collision_cost × collisions/min; the incumbent unless "
+            "a candidate's paired advantage > margin_z standard errors: then the best such score",
         }  # fmt: skip
         (staging / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
     return selection
@@ -167,23 +240,32 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=30.0, help="simulated s per placement")
     p.add_argument("--jobs", type=int, default=2, help="simulator processes")
     p.add_argument("--collision-cost", type=float, default=COLLISION_COST)
+    p.add_argument("--incumbent", metavar="NAME", help="kept unless beaten (default: the first)")
+    p.add_argument("--margin-z", type=float, default=MARGIN_Z,
+                   help="standard errors a challenger must win by (0: the best score)")  # fmt: skip
     p.add_argument("--keep", nargs="*", default=[], help="files copied beside the choice")
     p.add_argument("--reuse", nargs="*", default=[], metavar="SELECTION_JSON",
                    help="earlier selections: identical checkpoints take their numbers")  # fmt: skip
     a = p.parse_args(argv)
     try:
-        finite = math.isfinite(a.seconds) and math.isfinite(a.collision_cost)
-        if not (finite and a.seconds > 0 and a.collision_cost >= 0):
-            raise UserError("--seconds must be > 0 and --collision-cost >= 0 (finite numbers)")
+        finite = all(map(math.isfinite, (a.seconds, a.collision_cost, a.margin_z)))
+        if not (finite and a.seconds > 0 and a.collision_cost >= 0 and a.margin_z >= 0):
+            raise UserError(
+                "--seconds must be > 0, --collision-cost and --margin-z >= 0 (finite numbers)"
+            )
+        named = named_candidates(a.candidates)
+        if a.incumbent is not None and a.incumbent not in {name for name, _ in named}:
+            raise UserError(f"--incumbent: no candidate is named {a.incumbent!r}")
         keep = tuple(Path(k) for k in a.keep)
         missing = [str(k) for k in keep if not k.is_file()]
         if missing:
             raise UserError(f"--keep: no such file: {missing[0]}")
         out = Path(a.out)
         selection = select(
-            named_candidates(a.candidates), out, a.episodes, layout=a.layout,
-            tracks=parse_tracks(a.tracks), seconds=a.seconds, jobs=max(1, a.jobs),
-            collision_cost=a.collision_cost, keep=keep, reuse=tuple(Path(r) for r in a.reuse),
+            named, out, a.episodes, layout=a.layout, tracks=parse_tracks(a.tracks),
+            seconds=a.seconds, jobs=max(1, a.jobs), collision_cost=a.collision_cost,
+            incumbent=a.incumbent, margin_z=a.margin_z, keep=keep,
+            reuse=tuple(Path(r) for r in a.reuse),
         )  # fmt: skip
     except UserError as exc:
         print(f"select_by_driving: error: {' '.join(str(exc).split())}", file=sys.stderr)
