@@ -74,7 +74,8 @@ from carrt.settings import apply_sets
 
 @dataclass
 class StudyConfig:
-    """Every number of the study. The defaults are what the README's table was measured with."""
+    """Every number of the study. The defaults are its current design; each README table gives
+    the `--set`s it was run with."""
 
     out: str = "bench/results/dirl_sim"
     profile: str = "cpu"  # model sizes (training/profiles.py)
