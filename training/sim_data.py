@@ -181,10 +181,6 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--jobs", type=int, default=2, help="processes (default: 2)")
         if name == "demos":
             p.add_argument("--episodes", type=int, default=8, help="episodes per placement")
-            p.add_argument(
-                "--noise", type=finite_non_negative, default=0.0,
-                help="σ on the expert's commands",
-            )  # fmt: skip
         else:
             p.add_argument("--model", required=True, help="the policy that drives (.onnx)")
             p.add_argument(
@@ -194,10 +190,9 @@ def main(argv: list[str] | None = None) -> int:
                 "--seed-offset", type=int, default=0,
                 help="added to every placement's simulator seed (another drive, same placements)",
             )  # fmt: skip
-        if name == "interventions":
-            p.add_argument(
-                "--noise", type=finite_non_negative, default=0.0, help="σ on the take-overs"
-            )
+        if name in ("demos", "interventions"):  # the expert drives: its commands get σ
+            who = "the expert's commands" if name == "demos" else "the take-overs"
+            p.add_argument("--noise", type=finite_non_negative, default=0.0, help=f"σ on {who}")
         if name == "drives":
             p.add_argument(
                 "--explore", action="store_true",
