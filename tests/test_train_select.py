@@ -93,7 +93,10 @@ def test_reuse_takes_the_numbers_of_identical_weights_and_drives_the_rest(
     common = ["--episodes", str(sim_episodes), "--tracks", "200", "--seconds", "4", "--jobs", "1"]
     assert sel.main(["--out", str(first), "--candidates", f"start={start / 'policy.pt'}",
                      str(out / "candidates" / "refine2.pt"), *common]) == 0  # fmt: skip
-    earlier = json.loads((first / "selection.json").read_text())
+    text = (first / "selection.json").read_text()
+    assert "Infinity" not in text, "one placement: no standard error, written as null"
+    earlier = json.loads(text)
+    assert earlier["candidates"][1]["standard_error"] is None
     picked = next(c for c in earlier["candidates"] if c["name"] == earlier["chosen"])
 
     driven = []
@@ -185,7 +188,7 @@ def test_a_challenger_must_win_by_more_than_the_placements_noise():
 def test_one_placement_is_no_evidence_and_keeps_the_incumbent():
     start, better = candidate("start", 0, [0.5]), candidate("refine100", 1, [0.9])
     assert sel.choose([start, better])["name"] == "start"
-    assert better["standard_error"] == float("inf")
+    assert better["standard_error"] is None, "JSON has no infinity"
     assert sel.choose([start, better], margin_z=0)["name"] == "refine100"
 
 

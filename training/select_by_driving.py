@@ -135,14 +135,15 @@ def choose(
     """The incumbent (by name; None: the first candidate) unless others beat it by more than
     `margin_z` standard errors of the paired difference: then the best-scoring of those, the
     earlier one on a tie. Each candidate gets its "advantage" and "standard_error" against
-    the incumbent (0 and 0 for the incumbent itself)."""
+    the incumbent (0 and 0 for the incumbent itself; None: one placement, no spread)."""
     base = next((c for c in driven if c["name"] == incumbent), None) if incumbent else driven[0]
     if base is None:
         raise UserError(f"--incumbent: no candidate is named {incumbent!r}")
     winners = []
     for c in driven:
         mean, se = (0.0, 0.0) if c is base else paired_advantage(c, base, collision_cost)
-        c["advantage"], c["standard_error"] = mean, se
+        # JSON has no infinity: "no standard error" (one placement) is written as null
+        c["advantage"], c["standard_error"] = mean, se if math.isfinite(se) else None
         if c is not base and mean > 0 and (margin_z == 0 or mean > margin_z * se):
             winners.append(c)
     if not winners:
@@ -213,7 +214,8 @@ def select(
         for c in driven:
             if c["name"] != base:
                 gain, se = c["advantage"], c["standard_error"]
-                print(f"  {c['name']} − {base}: {gain:+.3f} ± {se:.3f} (paired score; "
+                spread = "?" if se is None else f"{se:.3f}"  # one placement: no spread
+                print(f"  {c['name']} − {base}: {gain:+.3f} ± {spread} (paired score; "
                       f"{margin_z:g} standard errors needed)", flush=True)  # fmt: skip
         for extra in keep:
             shutil.copy2(extra, staging / extra.name)
