@@ -94,16 +94,23 @@ def driven_before(selections: list[Path], layout: str, tracks: list[int], second
     return known
 
 
+def drive_score(completion: float, collisions_per_min: float, collision_cost: float) -> float:
+    """Higher is better: completion less the price of the collisions."""
+    return completion - collision_cost * collisions_per_min
+
+
 def score(aggregate: dict, collision_cost: float = COLLISION_COST) -> float:
-    """Higher is better: mean completion less the price of the collisions."""
-    completion = aggregate["completion_ratio"]["mean"]
-    return completion - collision_cost * aggregate["collisions_per_min"]["mean"]
+    """The score of the mean completion and collisions over the placements."""
+    means = (aggregate["completion_ratio"]["mean"], aggregate["collisions_per_min"]["mean"])
+    return drive_score(*means, collision_cost)
 
 
 def placement_scores(placements: list[dict], collision_cost: float) -> dict[tuple, float]:
     """{(track, seed): that drive's score}."""
     return {
-        (r["track"], r["seed"]): r["completion_ratio"] - collision_cost * r["collisions_per_min"]
+        (r["track"], r["seed"]): drive_score(
+            r["completion_ratio"], r["collisions_per_min"], collision_cost
+        )
         for r in placements
     }
 
@@ -136,9 +143,7 @@ def choose(
     `margin_z` standard errors of the paired difference: then the best-scoring of those, the
     earlier one on a tie. Each candidate gets its "advantage" and "standard_error" against
     the incumbent (0 and 0 for the incumbent itself; None: one placement, no spread)."""
-    base = next((c for c in driven if c["name"] == incumbent), None) if incumbent else driven[0]
-    if base is None:
-        raise UserError(f"--incumbent: no candidate is named {incumbent!r}")
+    base = next(c for c in driven if c["name"] == incumbent) if incumbent else driven[0]
     winners = []
     for c in driven:
         mean, se = (0.0, 0.0) if c is base else paired_advantage(c, base, collision_cost)
@@ -187,6 +192,9 @@ def select(
     from carrt.sim.evaluate import evaluate
     from export import export_policy
 
+    incumbent = incumbent or candidates[0][0]
+    if incumbent not in {name for name, _ in candidates}:  # before any candidate is driven
+        raise UserError(f"--incumbent: no candidate is named {incumbent!r}")
     with staged_folder(out) as staging:
         work = staging / "candidates"
         work.mkdir(parents=True)
@@ -210,12 +218,11 @@ def select(
             print(f"  {name}: completion {completion:.2f}, {per_min:.1f} collisions/min{how}",
                   flush=True)  # fmt: skip
         best = choose(driven, collision_cost, incumbent, margin_z)
-        base = incumbent or driven[0]["name"]
         for c in driven:
-            if c["name"] != base:
+            if c["name"] != incumbent:
                 gain, se = c["advantage"], c["standard_error"]
                 spread = "?" if se is None else f"{se:.3f}"  # one placement: no spread
-                print(f"  {c['name']} − {base}: {gain:+.3f} ± {spread} (paired score; "
+                print(f"  {c['name']} − {incumbent}: {gain:+.3f} ± {spread} (paired score; "
                       f"{margin_z:g} standard errors needed)", flush=True)  # fmt: skip
         for extra in keep:
             shutil.copy2(extra, staging / extra.name)
@@ -224,7 +231,7 @@ def select(
         selection = {
             "chosen": best["name"], "candidates": driven, "layout": layout, "tracks": tracks,
             "seconds": seconds, "collision_cost": collision_cost,
-            "incumbent": base, "margin_z": margin_z,
+            "incumbent": incumbent, "margin_z": margin_z,
             "rule": "score = completion − collision_cost × collisions/min; the incumbent unless "
             "a candidate's paired advantage > margin_z standard errors: then the best such score",
         }  # fmt: skip
@@ -255,17 +262,15 @@ def main(argv: list[str] | None = None) -> int:
             raise UserError(
                 "--seconds must be > 0, --collision-cost and --margin-z >= 0 (finite numbers)"
             )
-        named = named_candidates(a.candidates)
-        if a.incumbent is not None and a.incumbent not in {name for name, _ in named}:
-            raise UserError(f"--incumbent: no candidate is named {a.incumbent!r}")
         keep = tuple(Path(k) for k in a.keep)
         missing = [str(k) for k in keep if not k.is_file()]
         if missing:
             raise UserError(f"--keep: no such file: {missing[0]}")
         out = Path(a.out)
         selection = select(
-            named, out, a.episodes, layout=a.layout, tracks=parse_tracks(a.tracks),
-            seconds=a.seconds, jobs=max(1, a.jobs), collision_cost=a.collision_cost,
+            named_candidates(a.candidates), out, a.episodes, layout=a.layout,
+            tracks=parse_tracks(a.tracks), seconds=a.seconds, jobs=max(1, a.jobs),
+            collision_cost=a.collision_cost,
             incumbent=a.incumbent, margin_z=a.margin_z, keep=keep,
             reuse=tuple(Path(r) for r in a.reuse),
         )  # fmt: skip
