@@ -135,6 +135,10 @@ class StudyConfig:
     # validation placements: uncentred, iteration 2 moved every plan's steering by -0.02 to -0.04
     # and completion fell by 0.2-0.4 within 100 steps). False: the paper's gradient.
     refine_center_gradient: bool = True
+    # p̂(collision) in the objective with the world model's collision class weight divided out
+    # of its odds (WorldModel.imagine): class-weighted, p̂ is ~10x the true rate and the
+    # collision term ~10x its weight. False: the paper's form (raw p̂).
+    collision_prior_correction: bool = True
     # The third safeguard: refinement keeps a candidate every `refine_candidates_every` steps and
     # the policy it started from is one too; each is driven on validation placements and the best
     # is the iteration's policy (training/select_by_driving.py). False: the last step's policy.
@@ -198,6 +202,8 @@ def chain(
     common = ["--seed", str(seed), "--set", f"refine_w_anchor={cfg.refine_w_anchor}",
               "--set", f"refine_w_imitation={cfg.refine_w_imitation}",
               "--set", f"refine_center_gradient={str(cfg.refine_center_gradient).lower()}",
+              "--set", "collision_prior_correction="
+                       f"{str(cfg.collision_prior_correction).lower()}",
               "--set", f"counterfactual_starts={cfg.counterfactual_starts}",
               "--set", f"counterfactual_tracks={cfg.counterfactual_tracks}",
               "--set", f"counterfactual_layout={cfg.layout}",

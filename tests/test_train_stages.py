@@ -315,6 +315,51 @@ def test_refinement_gradient_reaches_the_actions_through_the_frozen_world_model(
     assert all(p.grad is None for p in world_model.parameters())
 
 
+def test_imagined_risk_has_the_training_class_weight_divided_out(data, trained_world_model):
+    """The world-model stage records the collision class weight it trained with (5 here);
+    imagine() divides it back out of the odds, p / (p + w(1 − p)), unless told not to (the
+    paper's form); the correction keeps the gradient to the actions."""
+    _, _, windows, _ = data
+    world_model = copy.deepcopy(trained_world_model[0])
+    world_model.freeze()
+    assert float(world_model.collision_class_weight) == 5.0
+    batch = torch.utils.data.default_collate([windows[i] for i in range(4)])
+    actions = batch["actions"].clone().requires_grad_(True)
+    raw = world_model.imagine(batch["image"], batch["speed"], actions, 10.0, False)
+    corrected = world_model.imagine(batch["image"], batch["speed"], actions, 10.0)
+    p = raw["p_collision"].detach()
+    assert torch.allclose(corrected["p_collision"].detach(), p / (p + 5.0 * (1 - p)))
+    assert (corrected["p_collision"] < raw["p_collision"]).all()
+    for key in ("speed", "u_image", "u_speed", "u_collision"):
+        assert torch.equal(corrected[key], raw[key])
+    corrected["p_collision"].sum().backward()
+    assert actions.grad is not None and actions.grad.abs().sum() > 0
+    with torch.no_grad():  # weight 1: nothing to divide out
+        world_model.collision_class_weight.fill_(1.0)
+        same = world_model.imagine(batch["image"], batch["speed"], actions, 10.0)
+    assert torch.allclose(same["p_collision"], p)
+
+
+def test_the_collision_class_weight_survives_a_checkpoint(data, trained_world_model, tmp_path):
+    """Saved with the weights; a checkpoint from before the weight was recorded loads with 1."""
+    _, norm, _, _ = data
+    policy, _ = models(norm)
+    world_model = trained_world_model[0]
+    fields = {
+        "config": {}, "profile": "tiny", "stage": "world_model", "step": 60,
+        "policy": policy.state_dict(), "world_model": world_model.state_dict(),
+        "optimizer": None, "normalisation": norm.to_dict(), "data_digest": "d", "iteration": 0,
+        "code_version": ck.code_version(), "episodes": ["e1"],
+    }  # fmt: skip
+    ck.save_checkpoint(tmp_path / "wm.pt", **fields)
+    loaded, _ = ck.load_world_model(tmp_path / "wm.pt")
+    assert float(loaded.collision_class_weight) == 5.0
+    old = {k: v for k, v in world_model.state_dict().items() if k != "collision_class_weight"}
+    ck.save_checkpoint(tmp_path / "old.pt", **{**fields, "world_model": old})
+    loaded, _ = ck.load_world_model(tmp_path / "old.pt")
+    assert float(loaded.collision_class_weight) == 1.0
+
+
 def test_no_uncertainty_removes_the_uncertainty_term(data):
     _, norm, windows, _ = data
     policy, world_model = models(norm)

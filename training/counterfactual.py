@@ -101,7 +101,9 @@ def score(world_model, data: dict, cfg) -> dict:
         image = torch.from_numpy(data["image"][i]).expand(k, *data["image"].shape[1:])
         speed = torch.full((k, 1), float(data["speed"][i]))
         actions = torch.from_numpy(data["actions"][i])
-        out = world_model.imagine(image, speed, actions, cfg.uncertainty_clip)
+        # a run's config from before the field existed: its world model has weight 1 anyway
+        correct = getattr(cfg, "collision_prior_correction", True)
+        out = world_model.imagine(image, speed, actions, cfg.uncertainty_clip, correct)
         imagined_speed[i] = out["speed"].numpy()
         risk[i] = out["p_collision"].max(dim=1).values.numpy()
         objective[i] = sequence_objective(out, *weights).numpy()

@@ -301,6 +301,10 @@ class WorldModel(_Normalised):
         self.image_head = ImageDecoder(hidden, profile.width, profile.predict_size)
         self.speed_head = _mlp(hidden, 4)
         self.collision_head = _mlp(hidden, 2)
+        # The weight of the collision class in the loss this model was trained with (set by
+        # the world-model stage): imagine() divides it back out of the odds. Saved with the
+        # weights, so a loaded model imagines what it imagined in the run that made it.
+        self.register_buffer("collision_class_weight", torch.ones(1))
 
     def forward(self, image: Tensor, speed: Tensor, actions: Tensor) -> WorldPrediction:
         context = self._encode(image, speed)
@@ -336,23 +340,46 @@ class WorldModel(_Normalised):
         )
 
     def imagine(
-        self, image: Tensor, speed: Tensor, actions: Tensor, uncertainty_clip: float
+        self,
+        image: Tensor,
+        speed: Tensor,
+        actions: Tensor,
+        uncertainty_clip: float,
+        prior_correction: bool = True,
     ) -> dict[str, Tensor]:
         """What this world model expects an action sequence to do, as refinement scores it:
         (N, H) speed in m/s, p(collision) and the three uncertainties, each capped at
         `uncertainty_clip` (u explodes as α → 1; the cap is per pixel before the mean, so one
         exploding pixel cannot dominate). Gradients flow to `actions` (DreamerV3: the world
-        model owns imagination; refinement and the counterfactual check only call it)."""
+        model owns imagination; refinement and the counterfactual check only call it).
+
+        `prior_correction` (our safeguard; False is the paper's form): the collision class is
+        weighted w = n_safe/n_collision (30-65) in training, which multiplies the head's odds
+        by about w, so its raw p̂ averages ~0.4 per step where collisions are ~0.04 per step.
+        The objective adds p̂ to metres per second as an expected cost, so an inflated p̂ gives
+        the collision term ~10× its weight and its noise. p / (p + w·(1 − p)) divides w back
+        out of the odds (the standard correction for a class-weighted classifier)."""
         pred = self(image, speed, actions)
         clip = float(uncertainty_clip)
         u_image, u_speed, u_coll = self.uncertainties(pred, clip=clip)
+        p_collision = dirichlet_probability(pred.collision)[..., 1]
+        if prior_correction:
+            weight = self.collision_class_weight
+            p_collision = p_collision / (p_collision + weight * (1.0 - p_collision))
         return {
             "speed": self.denormalise_speed(pred.speed.gamma[..., 0]),
-            "p_collision": dirichlet_probability(pred.collision)[..., 1],
+            "p_collision": p_collision,
             "u_image": u_image.clamp(max=clip),
             "u_speed": u_speed.clamp(max=clip),
             "u_collision": u_coll.clamp(max=clip),
         }
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """A checkpoint saved before `collision_class_weight` existed loads with weight 1 (no
+        correction): the weight it was trained with was not recorded."""
+        if "collision_class_weight" not in state_dict:
+            state_dict = {**state_dict, "collision_class_weight": torch.ones(1)}
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def freeze(self) -> None:
         """For refinement: eval() (BatchNorm statistics frozen), no parameter gradients, and

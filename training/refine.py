@@ -167,8 +167,9 @@ def train_refine(
         if cfg.refine_center_gradient and actions.requires_grad:
             actions.register_hook(centered)
         imagined = world_model.imagine(
-            batch["image"], batch["speed"], actions, cfg.uncertainty_clip
-        )
+            batch["image"], batch["speed"], actions, cfg.uncertainty_clip,
+            cfg.collision_prior_correction,
+        )  # fmt: skip
         loss, metrics = refine_objective(imagined, *weights)
         if start is not None:
             with torch.no_grad():
@@ -234,7 +235,10 @@ def held_out_objective(
 
     def measure(batch: dict) -> dict:
         mu, _sigma = policy(batch["image"], batch["speed"])
-        imagined = world_model.imagine(batch["image"], batch["speed"], mu, cfg.uncertainty_clip)
+        imagined = world_model.imagine(
+            batch["image"], batch["speed"], mu, cfg.uncertainty_clip,
+            cfg.collision_prior_correction,
+        )  # fmt: skip
         loss, metrics = refine_objective(imagined, *weights)
         return {k: (v, 1.0) for k, v in {"loss": loss, **metrics}.items()}
 

@@ -111,6 +111,8 @@ def train_world_model(
     ctx = ctx or RunContext()
     device = ctx.dist.device
     world_model.to(device)
+    with torch.no_grad():  # imagine() divides it back out of the collision odds
+        world_model.collision_class_weight.fill_(float(collision_weight))
     targets = Targets(norm).to(device)
     weights = {
         "w_image": cfg.w_image,
