@@ -35,6 +35,15 @@ def test_true_objective_counts_no_speed_after_a_collision():
     assert cf.true_objective(data, 1.0, 10.0)[0, 0] == pytest.approx(-4.0 + 10.0)
 
 
+def test_ordering_against_the_plan_counts_starts_where_imagination_agrees_with_truth():
+    """Sequence 1 against the plan (sequence 0): truth says better, worse, worse, tie; the
+    imagination says better, better, worse, worse; the tie is left out: 2 of 3 agree."""
+    truth = np.array([[0.0, -1.0], [0.0, 2.0], [1.0, 3.0], [5.0, 5.0]])
+    imagined = np.array([[0.0, -0.5], [1.0, 0.0], [0.0, 0.1], [0.0, 1.0]])
+    assert cf.orders_like_truth(imagined, truth, 1) == pytest.approx(2 / 3)
+    assert np.isnan(cf.orders_like_truth(imagined, truth, 0))  # the plan against itself
+
+
 def test_an_iteration_reports_its_world_model_counterfactual_check(sim_episodes, tmp_path):
     run = tmp_path / "iter1"
     small = ["--profile", "tiny", "--set", "threads=1", "--set", "progress=false",
@@ -68,4 +77,8 @@ def test_an_iteration_reports_its_world_model_counterfactual_check(sim_episodes,
     collided = data["true_collision"].max(axis=2).mean(axis=0)
     assert [rows[n]["true_collision"] for n in names] == pytest.approx(list(collided))
     assert all(0 <= rows[n]["imagined_risk"] <= 1 for n in names)
+    assert rows["plan"]["orders_like_truth"] is None  # JSON null, not NaN
+    assert all(rows[n]["orders_like_truth"] is None or 0 <= rows[n]["orders_like_truth"] <= 1
+               for n in names)  # fmt: skip
+    assert "NaN" not in json.dumps(rows)
     assert "| brake |" in (run / "report.md").read_text()

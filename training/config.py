@@ -73,9 +73,9 @@ class IterateConfig:
     no_uncertainty: bool = False  # the paper's "-unc" ablation: w_unc = 0
     # safeguard: p̂(collision) in the objective with the collision class weight of the world
     # model's training divided back out of its odds (WorldModel.imagine): class-weighted, p̂
-    # averages ~0.4 per step against ~0.04 true; measured on the counterfactual check of
-    # 9 world models (2026-11-24): rank correlation 0.32 -> 0.42 (iteration 2-3: 0.52-0.59);
-    # False: the paper's form
+    # averages ~0.4 per step against ~0.04 true; measured on the counterfactual check
+    # (2026-11-24, 3 seeds): rank correlation 0.28/0.54/0.63 for iterations 1-3 against
+    # 0.31/0.35/0.30 uncorrected; False: the paper's form
     collision_prior_correction: bool = True
     # safeguard: Σ|μ−μ_start|² per start; 10 chosen by driving on validation placements
     # (docs/dirl_anchor_validation.json: without it refinement took completion 0.84 → 0.18);
