@@ -5,6 +5,7 @@ of the refinement objective)."""
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -44,6 +45,48 @@ def test_ordering_against_the_plan_counts_starts_where_imagination_agrees_with_t
     assert np.isnan(cf.orders_like_truth(imagined, truth, 0))  # the plan against itself
 
 
+class _LinearWorld:
+    """A stand-in whose imagined speed is scale·(sign·steering + throttle), scale read from the
+    start's frame: the objective's gradient at the plan is known per start."""
+
+    def __init__(self, sign: float) -> None:
+        self.sign = sign
+
+    def imagine(self, image, speed, actions, clip, correct):
+        scale = image.float().mean()
+        v = scale * (self.sign * actions[..., 0] + actions[..., 1])
+        zero = torch.zeros_like(v)
+        return {"speed": v, "p_collision": zero, "u_image": zero, "u_speed": zero,
+                "u_collision": zero}  # fmt: skip
+
+
+def test_gradient_agreement_scores_the_direction_refinement_follows():
+    """Truth: at start i steering +0.3 and full throttle drive (i+1) m/s faster per step than
+    steering −0.3 and no throttle. A world model whose speed rises with steering agrees on every
+    start, raw and centred; one whose speed falls with it on none; throttle agrees in both."""
+    names = ["plan", "steer-0.3", "steer+0.3", "lift", "full"]
+    n, h = 4, 3
+    true_speed = np.ones((n, len(names), h))
+    for i in range(n):
+        true_speed[i, names.index("steer+0.3")] += i + 1
+        true_speed[i, names.index("full")] += i + 1
+    data = {
+        "actions": np.zeros((n, len(names), h, 2), np.float32),
+        "image": np.stack([np.full((4, 4, 3), i + 1, np.uint8) for i in range(n)]),
+        "speed": np.ones(n, np.float32),
+        "true_speed": true_speed, "true_collision": np.zeros_like(true_speed),
+        "mask": np.ones_like(true_speed), "meta": {"sequences": names},
+    }  # fmt: skip
+    cfg = SimpleNamespace(refine_w_speed=1.0, refine_w_collision=10.0, uncertainty_clip=10.0)
+    right = cf.gradient_agreement(_LinearWorld(1.0), data, cfg, (1.0, 10.0, 1.0))
+    assert right == {"steering": 1.0, "steering_centred": 1.0,
+                     "throttle": 1.0, "throttle_centred": 1.0}  # fmt: skip
+    wrong = cf.gradient_agreement(_LinearWorld(-1.0), data, cfg, (1.0, 10.0, 1.0))
+    assert wrong["steering"] == wrong["steering_centred"] == 0.0 and wrong["throttle"] == 1.0
+    data["meta"] = {"sequences": names[:3]}  # a set without lift and full: nothing to score
+    assert cf.gradient_agreement(_LinearWorld(1.0), data, cfg, (1.0, 10.0, 1.0)) == {}
+
+
 def test_an_iteration_reports_its_world_model_counterfactual_check(sim_episodes, tmp_path):
     run = tmp_path / "iter1"
     small = ["--profile", "tiny", "--set", "threads=1", "--set", "progress=false",
@@ -81,4 +124,6 @@ def test_an_iteration_reports_its_world_model_counterfactual_check(sim_episodes,
     assert all(rows[n]["orders_like_truth"] is None or 0 <= rows[n]["orders_like_truth"] <= 1
                for n in names)  # fmt: skip
     assert "NaN" not in json.dumps(rows)
+    assert set(result["gradient_agreement"]) == {
+        "steering", "steering_centred", "throttle", "throttle_centred"}  # fmt: skip
     assert "| brake |" in (run / "report.md").read_text()

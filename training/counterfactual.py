@@ -150,6 +150,7 @@ def score(world_model, data: dict, cfg) -> dict:
             }
             for j, name in enumerate(data["meta"].get("sequences", ()))
         },
+        "gradient_agreement": gradient_agreement(world_model, data, cfg, weights),
         "plan_is_best_imagined": float(np.mean(objective.argmin(axis=1) == 0)),
         "plan_is_best_true": float(np.mean(truth.argmin(axis=1) == 0)),
     }
@@ -167,6 +168,44 @@ def orders_like_truth(imagined: np.ndarray, real: np.ndarray, j: int) -> float:
     if not decided.any():
         return float("nan")
     return float(np.mean(np.sign(true_diff[decided]) == np.sign(imagined_diff[decided])))
+
+
+# Each action channel's truth at the plan, as a difference of two sequences of the set that
+# move only that channel: steering +0.3 against −0.3, full throttle against none.
+GRADIENT_PAIRS = {"steering": ("steer+0.3", "steer-0.3"), "throttle": ("full", "lift")}
+
+
+def gradient_agreement(world_model, data: dict, cfg, weights: tuple) -> dict:
+    """How often the imagined objective's gradient at the plan (summed over the horizon, per
+    action channel) has the sign of the true objective's difference across the plan: the
+    direction refinement follows, scored against reality. "_centred" subtracts the mean over
+    the starts from both, as `refine_center_gradient` does. 0.5 is a coin; {} without the
+    named sequences."""
+    names = list(data["meta"].get("sequences", ()))
+    if not all(n in names for pair in GRADIENT_PAIRS.values() for n in pair):
+        return {}
+    truth = true_objective(data, cfg.refine_w_speed, cfg.refine_w_collision)
+    correct = getattr(cfg, "collision_prior_correction", True)
+    grads = np.zeros((len(truth), 2))
+    for i in range(len(truth)):
+        plan = torch.from_numpy(data["actions"][i, :1]).clone().requires_grad_(True)
+        with torch.enable_grad():
+            out = world_model.imagine(
+                torch.from_numpy(data["image"][i : i + 1]),
+                torch.full((1, 1), float(data["speed"][i])),
+                plan, cfg.uncertainty_clip, correct,
+            )  # fmt: skip
+            (grad,) = torch.autograd.grad(sequence_objective(out, *weights).sum(), plan)
+        grads[i] = grad[0].sum(dim=0).numpy()
+    result = {}
+    for c, (channel, (up, down)) in enumerate(GRADIENT_PAIRS.items()):
+        diff, grad = truth[:, names.index(up)] - truth[:, names.index(down)], grads[:, c]
+        for suffix, g, d in (("", grad, diff),
+                             ("_centred", grad - grad.mean(), diff - diff.mean())):  # fmt: skip
+            decided = np.abs(d) > 1e-6
+            agree = np.mean(np.sign(g[decided]) == np.sign(d[decided])) if decided.any() else np.nan
+            result[channel + suffix] = finite_or_none(float(agree))
+    return result
 
 
 def finite_or_none(value: float) -> float | None:
@@ -222,6 +261,11 @@ def by_sequence_table(result: dict) -> list[str]:
             f"{r['true_collision']:.2f} | {r['imagined_risk']:.2f} | "
             f"{'—' if order is None else f'{order:.2f}'} |"
         )
+    grads = result.get("gradient_agreement") or {}  # absent in results from before it
+    if grads:
+        shown = ", ".join(f"{k} {'—' if v is None else f'{v:.2f}'}" for k, v in grads.items())
+        lines += ["", f"Gradient at the plan with the sign of the true difference (0.5 = a coin): "
+                  f"{shown}."]  # fmt: skip
     terms = ", ".join(f"{k} {v:.2f}" for k, v in result["rank_correlation_terms"].items())
     true_speed = result["rank_correlation_true_speed_term"]
     lines += ["", f"Rank correlation with the true objective of each imagined term alone: "
