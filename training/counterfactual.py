@@ -20,6 +20,11 @@ sequences from the same frame and speed, and three numbers say how far to trust 
                     one (−w_spd·speed + w_coll·collision per step, speed 0 after a collision),
                     averaged over starts
 
+and two that say what refinement itself can use, since it moves the plan by small steps and
+ρ over nine sequences is earned mostly on the far ones: per sequence, how often the imagined
+objective orders it against the plan as reality does; and the gradient agreement, how often
+the objective's gradient at the plan points the way the true difference across it does.
+
 The set is generated in a separate process: the simulator and torch in one process have
 crashed with heap corruption here (see docs/architecture.md), and the generator needs neither
 torch nor the world model, only the policy's ONNX file for its plans.
@@ -101,9 +106,7 @@ def score(world_model, data: dict, cfg) -> dict:
         image = torch.from_numpy(data["image"][i]).expand(k, *data["image"].shape[1:])
         speed = torch.full((k, 1), float(data["speed"][i]))
         actions = torch.from_numpy(data["actions"][i])
-        # a run's config from before the field existed: its world model has weight 1 anyway
-        correct = getattr(cfg, "collision_prior_correction", True)
-        out = world_model.imagine(image, speed, actions, cfg.uncertainty_clip, correct)
+        out = world_model.imagine(image, speed, actions, cfg.uncertainty_clip, corrects(cfg))
         imagined_speed[i] = out["speed"].numpy()
         risk[i] = out["p_collision"].max(dim=1).values.numpy()
         objective[i] = sequence_objective(out, *weights).numpy()
@@ -156,6 +159,12 @@ def score(world_model, data: dict, cfg) -> dict:
     }
 
 
+def corrects(cfg) -> bool:
+    """The run's collision_prior_correction; a config from before the field existed has a
+    world model with weight 1, for which it changes nothing."""
+    return getattr(cfg, "collision_prior_correction", True)
+
+
 def orders_like_truth(imagined: np.ndarray, real: np.ndarray, j: int) -> float:
     """Share of starts where the imagined objective says sequence j is better or worse than the
     plan (sequence 0) as the true one does (ties in the truth left out; NaN with none left).
@@ -185,7 +194,6 @@ def gradient_agreement(world_model, data: dict, cfg, weights: tuple) -> dict:
     if not all(n in names for pair in GRADIENT_PAIRS.values() for n in pair):
         return {}
     truth = true_objective(data, cfg.refine_w_speed, cfg.refine_w_collision)
-    correct = getattr(cfg, "collision_prior_correction", True)
     grads = np.zeros((len(truth), 2))
     for i in range(len(truth)):
         plan = torch.from_numpy(data["actions"][i, :1]).clone().requires_grad_(True)
@@ -193,7 +201,7 @@ def gradient_agreement(world_model, data: dict, cfg, weights: tuple) -> dict:
             out = world_model.imagine(
                 torch.from_numpy(data["image"][i : i + 1]),
                 torch.full((1, 1), float(data["speed"][i])),
-                plan, cfg.uncertainty_clip, correct,
+                plan, cfg.uncertainty_clip, corrects(cfg),
             )  # fmt: skip
             (grad,) = torch.autograd.grad(sequence_objective(out, *weights).sum(), plan)
         grads[i] = grad[0].sum(dim=0).numpy()

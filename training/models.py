@@ -354,8 +354,8 @@ class WorldModel(_Normalised):
         model owns imagination; refinement and the counterfactual check only call it).
 
         `prior_correction` (our safeguard; False is the paper's form): the collision class is
-        weighted w = n_safe/n_collision (30-65) in training, which multiplies the head's odds
-        by about w, so its raw p̂ averages ~0.4 per step where collisions are ~0.04 per step.
+        weighted w = n_safe/n_collision (23-65 in the study) in training, which multiplies the
+        head's odds by about w, so its raw p̂ averages ~0.4 per step where ~0.04 collide.
         The objective adds p̂ to metres per second as an expected cost, so an inflated p̂ gives
         the collision term ~10× its weight and its noise. p / (p + w·(1 − p)) divides w back
         out of the odds (the standard correction for a class-weighted classifier)."""

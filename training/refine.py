@@ -6,10 +6,12 @@ uncertainties those actions lead to, and the policy descends
 
     Σ_t [ −w_spd·ŝ_t + w_coll·p̂(collision)_t + w_unc·(u_i + u_s + u_c)_t ]
 
-ŝ is in m/s (de-normalised), p̂ = (e₁+1)/S is the Dirichlet's expected collision probability,
-and each uncertainty is clipped at `uncertainty_clip` because u = (1+1/ν)β/(α−1) explodes as
-α → 1 and a single such step would otherwise own the whole gradient. w_unc = 0 is the paper's
-"-unc" ablation (`--no-uncertainty`).
+ŝ is in m/s (de-normalised), p̂ = (e₁+1)/S is the Dirichlet's expected collision probability
+(with `collision_prior_correction`, our safeguard, the world model's class weight divided back
+out of its odds first: WorldModel.imagine), and each uncertainty is clipped at
+`uncertainty_clip` because u = (1+1/ν)β/(α−1) explodes as α → 1 and a single such step would
+otherwise own the whole gradient. w_unc = 0 is the paper's "-unc" ablation
+(`--no-uncertainty`).
 
 Safeguard (ours, not the paper's): `refine_w_anchor`·Σ_t |μ_t − μ⁰_t|² keeps the plan near the
 policy refinement started from (μ⁰, frozen), so a world model that is wrong about some actions
