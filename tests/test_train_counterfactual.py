@@ -77,14 +77,15 @@ def test_gradient_agreement_scores_the_direction_refinement_follows():
         "true_speed": true_speed, "true_collision": np.zeros_like(true_speed),
         "mask": np.ones_like(true_speed), "meta": {"sequences": names},
     }  # fmt: skip
-    cfg = SimpleNamespace(refine_w_speed=1.0, refine_w_collision=10.0, uncertainty_clip=10.0)
-    right = cf.gradient_agreement(_LinearWorld(1.0), data, cfg, (1.0, 10.0, 1.0))
+    cfg = SimpleNamespace(uncertainty_clip=10.0)
+    truth = cf.true_objective(data, 1.0, 10.0)
+    right = cf.gradient_agreement(_LinearWorld(1.0), data, cfg, (1.0, 10.0, 1.0), truth)
     assert right == {"steering": 1.0, "steering_centred": 1.0,
                      "throttle": 1.0, "throttle_centred": 1.0}  # fmt: skip
-    wrong = cf.gradient_agreement(_LinearWorld(-1.0), data, cfg, (1.0, 10.0, 1.0))
+    wrong = cf.gradient_agreement(_LinearWorld(-1.0), data, cfg, (1.0, 10.0, 1.0), truth)
     assert wrong["steering"] == wrong["steering_centred"] == 0.0 and wrong["throttle"] == 1.0
     data["meta"] = {"sequences": names[:3]}  # a set without lift and full: nothing to score
-    assert cf.gradient_agreement(_LinearWorld(1.0), data, cfg, (1.0, 10.0, 1.0)) == {}
+    assert cf.gradient_agreement(_LinearWorld(1.0), data, cfg, (1.0, 10.0, 1.0), truth) == {}
 
 
 def test_an_iteration_reports_its_world_model_counterfactual_check(sim_episodes, tmp_path):

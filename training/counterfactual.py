@@ -153,7 +153,7 @@ def score(world_model, data: dict, cfg) -> dict:
             }
             for j, name in enumerate(data["meta"].get("sequences", ()))
         },
-        "gradient_agreement": gradient_agreement(world_model, data, cfg, weights),
+        "gradient_agreement": gradient_agreement(world_model, data, cfg, weights, truth),
         "plan_is_best_imagined": float(np.mean(objective.argmin(axis=1) == 0)),
         "plan_is_best_true": float(np.mean(truth.argmin(axis=1) == 0)),
     }
@@ -172,11 +172,16 @@ def orders_like_truth(imagined: np.ndarray, real: np.ndarray, j: int) -> float:
     Why beside ρ: ρ over nine sequences is earned mostly on the far ones (brake, ±0.6 steering
     into a crash); refinement follows the gradient at the plan, so what it needs is the order
     of the plan and its near neighbours (±0.3 steering, full throttle)."""
-    true_diff, imagined_diff = real[:, j] - real[:, 0], imagined[:, j] - imagined[:, 0]
-    decided = np.abs(true_diff) > 1e-6
+    return sign_agreement(imagined[:, j] - imagined[:, 0], real[:, j] - real[:, 0])
+
+
+def sign_agreement(imagined: np.ndarray, true: np.ndarray) -> float:
+    """Share of entries where `imagined` has the sign of `true`, true ties (|·| ≤ 1e-6) left
+    out; NaN with none left."""
+    decided = np.abs(true) > 1e-6
     if not decided.any():
         return float("nan")
-    return float(np.mean(np.sign(true_diff[decided]) == np.sign(imagined_diff[decided])))
+    return float(np.mean(np.sign(true[decided]) == np.sign(imagined[decided])))
 
 
 # Each action channel's truth at the plan, as a difference of two sequences of the set that
@@ -184,16 +189,15 @@ def orders_like_truth(imagined: np.ndarray, real: np.ndarray, j: int) -> float:
 GRADIENT_PAIRS = {"steering": ("steer+0.3", "steer-0.3"), "throttle": ("full", "lift")}
 
 
-def gradient_agreement(world_model, data: dict, cfg, weights: tuple) -> dict:
+def gradient_agreement(world_model, data: dict, cfg, weights: tuple, truth: np.ndarray) -> dict:
     """How often the imagined objective's gradient at the plan (summed over the horizon, per
     action channel) has the sign of the true objective's difference across the plan: the
     direction refinement follows, scored against reality. "_centred" subtracts the mean over
     the starts from both, as `refine_center_gradient` does. 0.5 is a coin; {} without the
-    named sequences."""
+    named sequences. `truth`: true_objective of the set, (N, K)."""
     names = list(data["meta"].get("sequences", ()))
     if not all(n in names for pair in GRADIENT_PAIRS.values() for n in pair):
         return {}
-    truth = true_objective(data, cfg.refine_w_speed, cfg.refine_w_collision)
     grads = np.zeros((len(truth), 2))
     for i in range(len(truth)):
         plan = torch.from_numpy(data["actions"][i, :1]).clone().requires_grad_(True)
@@ -210,9 +214,7 @@ def gradient_agreement(world_model, data: dict, cfg, weights: tuple) -> dict:
         diff, grad = truth[:, names.index(up)] - truth[:, names.index(down)], grads[:, c]
         for suffix, g, d in (("", grad, diff),
                              ("_centred", grad - grad.mean(), diff - diff.mean())):  # fmt: skip
-            decided = np.abs(d) > 1e-6
-            agree = np.mean(np.sign(g[decided]) == np.sign(d[decided])) if decided.any() else np.nan
-            result[channel + suffix] = finite_or_none(float(agree))
+            result[channel + suffix] = finite_or_none(sign_agreement(g, d))
     return result
 
 
