@@ -88,13 +88,37 @@ def test_gradient_agreement_scores_the_direction_refinement_follows():
     assert cf.gradient_agreement(_LinearWorld(1.0), data, cfg, (1.0, 10.0, 1.0), truth) == {}
 
 
+def test_the_search_check_scores_the_move_refine_search_would_make():
+    """Three starts over the search's eight sequences (plan first). Start 0: the imagination
+    prefers lift (column 5) by 2, and truly lift is 1 better: a right move. Start 1: it prefers
+    brake by 0.4, truly 3 worse: a wrong move, gone at margin 0.5. Start 2: it prefers the plan.
+    """
+    names = ["plan", "steer-0.6", "steer-0.3", "steer+0.3", "steer+0.6", "lift", "brake", "full",
+             "random"]  # fmt: skip
+    imagined, truth = np.zeros((3, 9)), np.zeros((3, 9))
+    imagined[0, 5], truth[0, 5] = -2.0, -1.0
+    imagined[1, 6], truth[1, 6] = -0.4, 3.0
+    imagined[2, 1:] = 1.0
+    truth[2, 7] = -4.0  # a better choice the imagination did not see: the oracle's
+    imagined[:, 8], truth[:, 8] = -9.0, 9.0  # "random" is not among the search's choices
+    out = cf.search_check(imagined, truth, names)
+    assert out["margin_0"] == {"moves": pytest.approx(2 / 3), "right": 0.5,
+                               "true_gain": pytest.approx((1.0 - 3.0 + 0.0) / 3)}  # fmt: skip
+    assert out["margin_0.5"] == {"moves": pytest.approx(1 / 3), "right": 1.0,
+                                 "true_gain": pytest.approx(1 / 3)}  # fmt: skip
+    assert out["margin_2"]["moves"] == 0.0 and out["margin_2"]["right"] is None
+    assert out["oracle_true_gain"] == pytest.approx((1.0 + 0.0 + 4.0) / 3)
+    assert cf.search_check(imagined[:, :5], truth[:, :5], names[:5]) == {}
+
+
 def test_an_iteration_reports_its_world_model_counterfactual_check(sim_episodes, tmp_path):
     run = tmp_path / "iter1"
     small = ["--profile", "tiny", "--set", "threads=1", "--set", "progress=false",
              "--set", "figures=false", "--set", "imitation_steps=4",
              "--set", "world_model_steps=4", "--set", "refine_steps=2",
              "--set", "world_model_batch_size=4", "--set", "refine_batch_size=4",
-             "--set", "counterfactual_starts=2", "--set", "counterfactual_tracks=200"]  # fmt: skip
+             "--set", "counterfactual_starts=2", "--set", "counterfactual_tracks=200",
+             "--set", "refine_search=true"]  # fmt: skip
     before = torch.get_num_threads()
     assert iterate(["--episodes", str(sim_episodes), "--out", str(run), *small]) == 0
     torch.set_num_threads(before)
@@ -128,3 +152,5 @@ def test_an_iteration_reports_its_world_model_counterfactual_check(sim_episodes,
     assert set(result["gradient_agreement"]) == {
         "steering", "steering_centred", "throttle", "throttle_centred"}  # fmt: skip
     assert "| brake |" in (run / "report.md").read_text()
+    assert {"oracle_true_gain", "margin_0", "margin_2"} <= set(result["search"])
+    assert "Search among the alternatives" in (run / "report.md").read_text()

@@ -91,6 +91,15 @@ class IterateConfig:
     # by -0.02 to -0.04 and completion fell 0.80/0.81/0.76 -> 0.61/0.44/0.62 in 100 steps;
     # False: the paper's form
     refine_center_gradient: bool = True
+    # safeguard: refinement by search instead of the gradient (training/refine_search.py):
+    # from each start the world model imagines the plan and fixed alternatives (steering ±0.3 /
+    # ±0.6, lift, brake, full throttle) and μ is pulled by L1 toward the best where it beats the
+    # plan by more than refine_search_margin (objective units); why: the gradient at the plan
+    # had the true sign 0.47-0.63 of the time on the counterfactual check, the ordering of
+    # whole alternatives 0.86-0.93 for most; False: the paper's gradient
+    refine_search: bool = False
+    refine_search_margin: float = 0.0
+    refine_w_search: float = 50.0  # weight of the L1 toward the chosen alternative
     # every N refinement steps the policy is also kept as a candidate (OUT/candidates/
     # refine<step>.pt) so that how far to refine can be chosen by driving
     # (training/select_by_driving.py); 0: only the final policy
@@ -133,7 +142,7 @@ class IterateConfig:
             "stop_after", "num_workers", "collision_weight", "threads", "intervention_weight",
             "augment_hue", "augment_saturation", "augment_brightness", "augment_contrast",
             "counterfactual_starts", "refine_w_anchor", "refine_w_imitation",
-            "refine_candidates_every",
+            "refine_candidates_every", "refine_search_margin", "refine_w_search",
         ]  # fmt: skip
         for name in non_negative:
             if getattr(self, name) < 0:

@@ -46,6 +46,7 @@ from carrt.policy import file_sha256
 from training import checkpoint as ck
 from training.evaluate import auroc, spearman
 from training.refine import sequence_objective, uncertainty_weight
+from training.refine_search import SEARCH_SEQUENCES, best_moves
 
 TARGETS = {"collision_auroc": 0.85, "rank_correlation": 0.5}  # issue 14's bar for trusting it
 
@@ -154,6 +155,7 @@ def score(world_model, data: dict, cfg) -> dict:
             for j, name in enumerate(data["meta"].get("sequences", ()))
         },
         "gradient_agreement": gradient_agreement(world_model, data, cfg, weights, truth),
+        "search": search_check(objective, truth, list(data["meta"].get("sequences", ()))),
         "plan_is_best_imagined": float(np.mean(objective.argmin(axis=1) == 0)),
         "plan_is_best_true": float(np.mean(truth.argmin(axis=1) == 0)),
     }
@@ -218,6 +220,32 @@ def gradient_agreement(world_model, data: dict, cfg, weights: tuple, truth: np.n
     return result
 
 
+SEARCH_MARGINS = (0.0, 0.5, 1.0, 2.0)
+
+
+def search_check(imagined: np.ndarray, truth: np.ndarray, names: list[str]) -> dict:
+    """What `refine_search` would do from these starts, scored against reality, per margin:
+    the share of starts it moves (`moves`), the share of those moves that truly beat the plan
+    (`right`, 0.5 a coin), and the true gain per start, moves and stays together
+    (`true_gain`: the plan's true objective less the chosen one's; the oracle's is the most
+    any choice could gain). {} without the search's sequences in the set."""
+    if not all(name in names for name in SEARCH_SEQUENCES):
+        return {}
+    cols = [names.index(name) for name in SEARCH_SEQUENCES]
+    real = truth[:, cols]
+    result = {"oracle_true_gain": float((real[:, 0] - real.min(axis=1)).mean())}
+    for margin in SEARCH_MARGINS:
+        chosen = best_moves(torch.from_numpy(imagined[:, cols]), margin).numpy()
+        gain = real[:, 0] - real[np.arange(len(real)), chosen]
+        moved = chosen > 0
+        result[f"margin_{margin:g}"] = {
+            "moves": float(moved.mean()),
+            "right": finite_or_none(float((gain[moved] > 0).mean()) if moved.any() else np.nan),
+            "true_gain": float(gain.mean()),
+        }
+    return result
+
+
 def finite_or_none(value: float) -> float | None:
     return value if np.isfinite(value) else None
 
@@ -276,11 +304,26 @@ def by_sequence_table(result: dict) -> list[str]:
         shown = ", ".join(f"{k} {'—' if v is None else f'{v:.2f}'}" for k, v in grads.items())
         lines += ["", f"Gradient at the plan with the sign of the true difference (0.5 = a coin): "
                   f"{shown}."]  # fmt: skip
+    lines += search_lines(result.get("search") or {})  # absent in results from before it
     terms = ", ".join(f"{k} {v:.2f}" for k, v in result["rank_correlation_terms"].items())
     true_speed = result["rank_correlation_true_speed_term"]
     lines += ["", f"Rank correlation with the true objective of each imagined term alone: "
               f"{terms}; of the true speed term alone {true_speed:.2f}."]  # fmt: skip
     return lines
+
+
+def search_lines(search: dict) -> list[str]:
+    """Markdown: what refine_search would choose from these starts, per margin."""
+    if not search:
+        return []
+    parts = []
+    for key, r in search.items():
+        if key.startswith("margin_"):
+            right = "—" if r["right"] is None else f"{r['right']:.2f}"
+            parts.append(f"margin {key.removeprefix('margin_')}: moves {r['moves']:.2f}, "
+                         f"right {right}, true gain {r['true_gain']:+.2f}")  # fmt: skip
+    return ["", f"Search among the alternatives (refine_search): {'; '.join(parts)} (oracle "
+            f"gain {search['oracle_true_gain']:+.2f} per start)."]  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -37,6 +37,11 @@ fell from 0.80/0.81/0.76 to 0.61/0.44/0.62 within 100 steps (without the collisi
 with it, so centred refinement trades speed between situations rather than raising it overall.
 False: the paper's form.
 
+A fourth, `refine_search`, replaces the gradient through the world model by a search in its
+imagination (training/refine_search.py): μ is pulled toward whichever of a fixed set of
+alternatives the world model imagines best, because it orders whole alternatives far better
+than its gradient at the plan points (measured there). False: the paper's gradient.
+
 Frozen means eval() + requires_grad False (WorldModel.freeze()): no parameter moves and the
 BatchNorm running statistics stay those learned on real data — in train mode the imagined
 batches would overwrite them. The gradient still flows through the world model to the actions.
@@ -61,6 +66,7 @@ from training.data import take
 from training.held_out import held_out
 from training.imitation import imitation_loss
 from training.models import sample_actions
+from training.refine_search import search_loss, search_targets
 from training.trainer import RunContext, StageResult, StageSpec, per_rank_batch, run_stage
 
 if TYPE_CHECKING:
@@ -130,6 +136,31 @@ def centered(grad: torch.Tensor) -> torch.Tensor:
     return grad - grad.mean(dim=0, keepdim=True)
 
 
+def gradient_step(cfg: IterateConfig, world_model, batch: dict, actions, weights: tuple):
+    """The paper's loss: the imagined objective of the sampled actions (its gradient centred
+    over the starts with `refine_center_gradient`)."""
+    if cfg.refine_center_gradient and actions.requires_grad:
+        actions.register_hook(centered)
+    imagined = world_model.imagine(
+        batch["image"], batch["speed"], actions, cfg.uncertainty_clip,
+        cfg.collision_prior_correction,
+    )  # fmt: skip
+    return refine_objective(imagined, *weights)
+
+
+def search_step(cfg: IterateConfig, world_model, batch: dict, actions, mu, weights: tuple):
+    """`refine_search`: L1 from μ to the imagined-best alternative (training/refine_search.py).
+    0·Σ actions keeps σ in the graph, as imitation does, for DistributedDataParallel."""
+    targets, chosen = search_targets(
+        world_model, batch["image"], batch["speed"], mu,
+        lambda imagined: sequence_objective(imagined, *weights),
+        cfg.uncertainty_clip, cfg.collision_prior_correction, cfg.refine_search_margin,
+    )  # fmt: skip
+    pull = search_loss(mu, targets)
+    loss = cfg.refine_w_search * pull + 0.0 * actions.sum()
+    return loss, {"search_l1": pull.detach(), "moved": (chosen > 0).float().mean()}
+
+
 def uncertainty_weight(cfg: IterateConfig) -> float:
     return 0.0 if cfg.no_uncertainty else cfg.refine_w_uncertainty
 
@@ -166,13 +197,10 @@ def train_refine(
     def loss_fn(model: nn.Module, batch: dict, step: int):
         eps = noise((len(batch["speed"]), horizon, 2), cfg.seed, step, ctx.dist.rank, device)
         actions, mu = model(batch["image"], batch["speed"], eps)
-        if cfg.refine_center_gradient and actions.requires_grad:
-            actions.register_hook(centered)
-        imagined = world_model.imagine(
-            batch["image"], batch["speed"], actions, cfg.uncertainty_clip,
-            cfg.collision_prior_correction,
-        )  # fmt: skip
-        loss, metrics = refine_objective(imagined, *weights)
+        if cfg.refine_search:
+            loss, metrics = search_step(cfg, world_model, batch, actions, mu, weights)
+        else:
+            loss, metrics = gradient_step(cfg, world_model, batch, actions, weights)
         if start is not None:
             with torch.no_grad():
                 mu_start = start(batch["image"], batch["speed"])[0]
