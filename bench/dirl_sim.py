@@ -139,6 +139,11 @@ class StudyConfig:
     # of its odds (WorldModel.imagine): class-weighted, p̂ is ~10x the true rate and the
     # collision term ~10x its weight. False: the paper's form (raw p̂).
     collision_prior_correction: bool = True
+    # Refinement by search in the world model's imagination instead of its gradient
+    # (training/refine_search.py): μ pulled toward the imagined-best of fixed alternatives where
+    # it beats the plan by the margin. False: the paper's gradient.
+    refine_search: bool = False
+    refine_search_margin: float = 0.0
     # The third safeguard: refinement keeps a candidate every `refine_candidates_every` steps and
     # the policy it started from is one too; each is driven on validation placements and the best
     # is the iteration's policy (training/select_by_driving.py). False: the last step's policy.
@@ -184,6 +189,23 @@ QUICK = dict(
 )  # fmt: skip
 
 
+def run_settings(cfg: StudyConfig, seed: int, every: int) -> list[str]:
+    """The iterate.py arguments every run of a chain shares: its seed, the refinement
+    safeguards and method, the check, and how often refinement keeps a candidate (`every`)."""
+    return ["--seed", str(seed), "--set", f"refine_w_anchor={cfg.refine_w_anchor}",
+           "--set", f"refine_w_imitation={cfg.refine_w_imitation}",
+           "--set", f"refine_center_gradient={str(cfg.refine_center_gradient).lower()}",
+           "--set", "collision_prior_correction="
+                    f"{str(cfg.collision_prior_correction).lower()}",
+           "--set", f"refine_search={str(cfg.refine_search).lower()}",
+           "--set", f"refine_search_margin={cfg.refine_search_margin}",
+           "--set", f"counterfactual_starts={cfg.counterfactual_starts}",
+           "--set", f"counterfactual_tracks={cfg.counterfactual_tracks}",
+           "--set", f"counterfactual_layout={cfg.layout}",
+           "--set", f"w_image={cfg.w_image}",
+           "--set", f"refine_candidates_every={every}"]  # fmt: skip
+
+
 def chain(
     cfg: StudyConfig,
     step: StudyStep,
@@ -199,16 +221,7 @@ def chain(
     expert = Path(cfg.out) / "data" / f"expert-noise{sigma:g}"
     extra = Path(cfg.out) / "data" / f"extra-noise{sigma:g}"
     every = cfg.refine_candidates_every if cfg.select_by_driving else 0  # candidates kept
-    common = ["--seed", str(seed), "--set", f"refine_w_anchor={cfg.refine_w_anchor}",
-              "--set", f"refine_w_imitation={cfg.refine_w_imitation}",
-              "--set", f"refine_center_gradient={str(cfg.refine_center_gradient).lower()}",
-              "--set", "collision_prior_correction="
-                       f"{str(cfg.collision_prior_correction).lower()}",
-              "--set", f"counterfactual_starts={cfg.counterfactual_starts}",
-              "--set", f"counterfactual_tracks={cfg.counterfactual_tracks}",
-              "--set", f"counterfactual_layout={cfg.layout}",
-              "--set", f"w_image={cfg.w_image}",
-              "--set", f"refine_candidates_every={every}"]  # fmt: skip
+    common = run_settings(cfg, seed, every)
     imitation = ["--set", f"imitation_steps={cfg.imitation_steps}",
                  "--set", "world_model_steps=0", "--set", "refine_steps=0"]  # fmt: skip
 
