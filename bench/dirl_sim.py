@@ -66,7 +66,14 @@ from bench.dirl_steps import (
     select,
     top_up,
 )
-from bench.dirl_table import before_refinement, comparison, il_at_frames_of, plot, table
+from bench.dirl_table import (
+    SEARCH_ROW,
+    before_refinement,
+    comparison,
+    il_at_frames_of,
+    plot,
+    table,
+)
 from bench.study_steps import NotRun, StudyStep, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
@@ -144,6 +151,9 @@ class StudyConfig:
     # it beats the plan by the margin. False: the paper's gradient.
     refine_search: bool = False
     refine_search_margin: float = 0.0
+    # With refine_search false: a row "DIRL search iter 1" at σ 0, iteration 1's world model
+    # and start policy refined by search, selected and evaluated like the others.
+    compare_search: bool = True
     # The third safeguard: refinement keeps a candidate every `refine_candidates_every` steps and
     # the policy it started from is one too; each is driven on validation placements and the best
     # is the iteration's policy (training/select_by_driving.py). False: the last step's policy.
@@ -281,14 +291,19 @@ def chain(
         if imitated and cfg.select_by_driving:
             row(before_refinement(k), k, run, data, policy, candidate="imitated")
         if k == 1 and sigma == 0:
-            # The same world model and start policy: only the uncertainty term differs.
-            unc = runs / "unc1"
-            step(f"train-{tag}-unc1", iterate_cmd(cfg, data, unc, *common, "--init",
-                 str(run / "checkpoints" / "world_model.pt"), "--no-uncertainty",
-                 "--set", "world_model_steps=0", "--set", f"refine_steps={cfg.refine_steps}"),
-                 unc / ".done")  # fmt: skip
-            unc_policy = select(cfg, step, f"{tag}-unc1", 1, unc, previous, data, imitated)
-            row("DIRL -unc iter 1", 1, unc, data, unc_policy)
+            # The same world model and start policy, one thing changed in refinement: the
+            # paper's ablation without the uncertainty term; refinement by search, not gradient.
+            variants = [("unc1", "DIRL -unc iter 1", ["--no-uncertainty"])]
+            if cfg.compare_search and not cfg.refine_search:
+                variants.append(("search1", SEARCH_ROW, ["--set", "refine_search=true"]))
+            for name, model, flags in variants:
+                alt = runs / name
+                step(f"train-{tag}-{name}", iterate_cmd(cfg, data, alt, *common, "--init",
+                     str(run / "checkpoints" / "world_model.pt"), *flags,
+                     "--set", "world_model_steps=0", "--set", f"refine_steps={cfg.refine_steps}"),
+                     alt / ".done")  # fmt: skip
+                alt_policy = select(cfg, step, f"{tag}-{name}", 1, alt, previous, data, imitated)
+                row(model, 1, alt, data, alt_policy)
         # Imitation on as many frames as this iteration had, from the second demonstration
         # pool (whole episodes in name order, so iteration k's set extends iteration k-1's).
         equal = [expert, *top_up(extra, frames_in(data) - expert_frames)]
@@ -304,6 +319,7 @@ def planned_steps(cfg: StudyConfig) -> int:
     chains += [(x, s, cfg.robustness_iterations) for x in cfg.demo_noise if x
                for s in cfg.robustness_seeds]  # fmt: skip
     per_dirl, per_unc = (6, 3) if cfg.select_by_driving else (5, 2)  # + a selection each
+    per_unc *= 2 if cfg.compare_search and not cfg.refine_search else 1  # the search row too
     per_dirl += 1 if cfg.takeover_seconds else 0  # the take-over drives
     per_dirl += 1 if cfg.reimitate_steps and cfg.select_by_driving else 0  # before refinement
     per_chain = sum(2 + per_dirl * k + (per_unc if sigma == 0 else 0) for sigma, _, k in chains)

@@ -64,6 +64,7 @@ def il_at_frames_of(k: int | str) -> str:
 
 
 BEFORE_REFINEMENT = " before refinement"
+SEARCH_ROW = "DIRL search iter 1"  # iteration 1 refined by search (refine_search), not gradient
 
 
 def before_refinement(k: int | str) -> str:
@@ -74,6 +75,8 @@ def before_refinement(k: int | str) -> str:
 
 def baselines(model: str) -> list[str]:
     """What a model is compared with, seed by seed: the paper's questions."""
+    if model == SEARCH_ROW:  # does search beat the gradient, the start, more data?
+        return ["DIRL iter 1", before_refinement(1), "IL", il_at_frames_of(1)]
     if model.startswith("DIRL -unc iter "):
         return [model.replace("DIRL -unc", "DIRL")]  # does the uncertainty term matter?
     if model.startswith("DIRL iter ") and model.endswith(BEFORE_REFINEMENT):
@@ -131,6 +134,7 @@ def plot(rows: list[dict], path: Path) -> None:
         completion = [r["aggregate"]["completion_ratio"]["mean"] for r in rs]
         marker = "s" if model.startswith("IL") else ("x" if "-unc" in model else "o")
         marker = "^" if model.endswith(BEFORE_REFINEMENT) else marker
+        marker = "d" if model == SEARCH_ROW else marker
         ax.errorbar(np.mean(frames), np.mean(completion), yerr=np.std(completion), fmt=marker,
                     capsize=3, label=f"σ {sigma:g} {model}")  # fmt: skip
     ax.set_xlabel("frames of data")

@@ -57,14 +57,19 @@ def test_the_plan_counts_every_step_the_study_runs():
                           "iterations=2", "--set", "robustness_iterations=1"])  # fmt: skip
     # demos 2×2; σ 0 per seed: IL 2 + 2 iterations × (drive, take-overs, train, select, eval,
     # eval before refinement + IL at its frames train, eval) + -unc 3 (train, select, eval)
-    # = 21; σ 1: IL 2 + 1 iteration × 8 = 10
-    assert dirl_sim.planned_steps(cfg) == 4 + 2 * 21 + 10
+    # + search 3 = 24; σ 1: IL 2 + 1 iteration × 8 = 10
+    assert dirl_sim.planned_steps(cfg) == 4 + 2 * 24 + 10
+    # without the search row (or with search as the method itself): -unc alone
+    for no_row in ("compare_search=false", "refine_search=true"):
+        alone = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
+                                "iterations=2", "--set", no_row])  # fmt: skip
+        assert dirl_sim.planned_steps(alone) == 4 + 2 * 21 + 10
     # without the selection by driving, no selection and no before-refinement row
     off = dataclasses.replace(cfg, select_by_driving=False)
-    assert dirl_sim.planned_steps(off) == 4 + 2 * 16 + 8
+    assert dirl_sim.planned_steps(off) == 4 + 2 * 18 + 8
     # the paper's iterations (no take-overs, imitation once): drive, train, select, eval, IL ×2
     paper = dataclasses.replace(cfg, takeover_seconds=0.0, reimitate_steps=0)
-    assert dirl_sim.planned_steps(paper) == 4 + 2 * 17 + 8
+    assert dirl_sim.planned_steps(paper) == 4 + 2 * 20 + 8
 
 
 class _Steps:
@@ -201,6 +206,15 @@ def test_refinement_is_compared_with_the_same_iteration_before_it():
             _row(dirl_table.before_refinement(1), 0, [0.5], iteration=1)]  # fmt: skip
     lines = dirl_table.comparison(rows).splitlines()
     assert any("| DIRL iter 1 | DIRL iter 1 before refinement | 1 | +0.10 |" in x for x in lines)
+
+
+def test_the_search_row_is_compared_with_gradient_refinement_and_its_start():
+    assert dirl_table.baselines(dirl_table.SEARCH_ROW) == [
+        "DIRL iter 1", "DIRL iter 1 before refinement", "IL", "IL, frames of iter 1"]  # fmt: skip
+    rows = [_row("DIRL iter 1", 0, [0.6], iteration=1),
+            _row(dirl_table.SEARCH_ROW, 0, [0.7], iteration=1)]  # fmt: skip
+    lines = dirl_table.comparison(rows).splitlines()
+    assert any("| DIRL search iter 1 | DIRL iter 1 | 1 | +0.10 |" in x for x in lines)
 
 
 def test_plot_writes_completion_against_frames(tmp_path):
