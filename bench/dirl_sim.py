@@ -295,7 +295,7 @@ def chain(
             # paper's ablation without the uncertainty term; refinement by search, not gradient.
             variants = [("unc1", "DIRL -unc iter 1", ["--no-uncertainty"])]
             if cfg.compare_search and not cfg.refine_search:
-                variants.append(("search1", SEARCH_ROW, ["--set", "refine_search=true"]))
+                variants.insert(0, ("search1", SEARCH_ROW, ["--set", "refine_search=true"]))
             for name, model, flags in variants:
                 alt = runs / name
                 step(f"train-{tag}-{name}", iterate_cmd(cfg, data, alt, *common, "--init",
