@@ -20,6 +20,18 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 import pytest  # noqa: E402
 
 
+@pytest.fixture
+def one_thread():
+    """One torch intra-op thread for the test: two cores shared with other tests make one
+    thread several times faster here (torch imported only by the training tests that ask)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="session")
 def sim_episodes(tmp_path_factory):
     """A small dataset recorded by the real stack in the simulator, once per test session

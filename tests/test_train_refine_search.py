@@ -17,13 +17,7 @@ from training.models import PolicyNet  # noqa: E402
 from training.refine import train_refine  # noqa: E402
 from training.refine_search import SEARCH_SEQUENCES, alternatives, best_moves  # noqa: E402
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def test_the_alternatives_are_the_counterfactual_checks_own():

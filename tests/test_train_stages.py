@@ -44,14 +44,7 @@ from training.trainer import (  # noqa: E402
 )
 from training.world_model_stage import train_world_model  # noqa: E402
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Two cores shared with other tests: one intra-op thread is several times faster here."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")
