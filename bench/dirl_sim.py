@@ -151,6 +151,10 @@ class StudyConfig:
     # it beats the plan by the margin. False: the paper's gradient.
     refine_search: bool = False
     refine_search_margin: float = 0.0
+    # With refine_search: the first DIRL iteration refined by search, the ones before it by the
+    # gradient (2: iteration 1 as the gradient studies ran it, search once the world model has
+    # seen the policy's own drives twice; the check's ρ rose from 0.3 to 0.5-0.6 by then).
+    search_from: int = 1
     # With refine_search false: a row "DIRL search iter 1" at σ 0, iteration 1's world model
     # and start policy refined by search, selected and evaluated like the others.
     compare_search: bool = True
@@ -199,15 +203,21 @@ QUICK = dict(
 )  # fmt: skip
 
 
-def run_settings(cfg: StudyConfig, seed: int, every: int) -> list[str]:
+def searches(cfg: StudyConfig, iteration: int) -> bool:
+    """Whether DIRL iteration `iteration` refines by search (else by the gradient)."""
+    return cfg.refine_search and iteration >= cfg.search_from
+
+
+def run_settings(cfg: StudyConfig, seed: int, every: int, iteration: int = 1) -> list[str]:
     """The iterate.py arguments every run of a chain shares: its seed, the refinement
-    safeguards and method, the check, and how often refinement keeps a candidate (`every`)."""
+    safeguards and method (iteration `iteration`'s), the check, and how often refinement keeps
+    a candidate (`every`)."""
     return ["--seed", str(seed), "--set", f"refine_w_anchor={cfg.refine_w_anchor}",
            "--set", f"refine_w_imitation={cfg.refine_w_imitation}",
            "--set", f"refine_center_gradient={str(cfg.refine_center_gradient).lower()}",
            "--set", "collision_prior_correction="
                     f"{str(cfg.collision_prior_correction).lower()}",
-           "--set", f"refine_search={str(cfg.refine_search).lower()}",
+           "--set", f"refine_search={str(searches(cfg, iteration)).lower()}",
            "--set", f"refine_search_margin={cfg.refine_search_margin}",
            "--set", f"counterfactual_starts={cfg.counterfactual_starts}",
            "--set", f"counterfactual_tracks={cfg.counterfactual_tracks}",
@@ -238,9 +248,10 @@ def chain(
     evaluated: dict[str, Path] = {}  # sha256 of policy.pt → the first eval.json with it
 
     def row(model: str, iteration: int, run: Path, data: list[Path], policy: Path | None = None,
-            candidate: str | None = None):  # fmt: skip
+            candidate: str | None = None, refinement: str | None = None):  # fmt: skip
         """Evaluate and record one model: the run's policy, the one chosen by driving (`policy`)
-        or one of its selection's candidates (`candidate`: its name there)."""
+        or one of its selection's candidates (`candidate`: its name there); `refinement`:
+        "gradient" or "search" for a refined row."""
         from carrt.policy import file_sha256
 
         policy = policy or run
@@ -264,6 +275,7 @@ def chain(
             "frames": frames_in(data), "run": str(run), "aggregate": out["aggregate"],
             "runs": out["runs"], "counterfactual": metrics.get("counterfactual"),
             "chosen": chosen, "same_weights_as": same_as and str(same_as.parent),
+            "refinement": refinement,
         })  # fmt: skip
         agg = out["aggregate"]
         print(f"  [{tag}] {model}: completion {agg['completion_ratio']['mean']:.2f}, "
@@ -282,28 +294,31 @@ def chain(
         data = [*data, *iteration_drives(cfg, step, tag, sigma, k, previous)]
         run = runs / f"dirl{k}"
         wm_steps = cfg.world_model_steps if k == 1 else cfg.world_model_steps_next
-        step(f"train-{tag}-dirl{k}", iterate_cmd(cfg, data, run, *common, "--init",
+        settings = run_settings(cfg, seed, every, iteration=k)
+        step(f"train-{tag}-dirl{k}", iterate_cmd(cfg, data, run, *settings, "--init",
              str(previous), *again, "--set", f"world_model_steps={wm_steps}",
              "--set", f"refine_steps={cfg.refine_steps}"), run / ".done")  # fmt: skip
         imitated = run / "checkpoints" / "imitation.pt" if reimitate else None
         policy = select(cfg, step, f"{tag}-dirl{k}", k, run, previous, data, imitated)
-        row(f"DIRL iter {k}", k, run, data, policy)
+        method = "search" if searches(cfg, k) else "gradient"
+        row(f"DIRL iter {k}", k, run, data, policy, refinement=method)
         if imitated and cfg.select_by_driving:
             row(before_refinement(k), k, run, data, policy, candidate="imitated")
         if k == 1 and sigma == 0:
             # The same world model and start policy, one thing changed in refinement: the
             # paper's ablation without the uncertainty term; refinement by search, not gradient.
-            variants = [("unc1", "DIRL -unc iter 1", ["--no-uncertainty"])]
-            if cfg.compare_search and not cfg.refine_search:
-                variants.insert(0, ("search1", SEARCH_ROW, ["--set", "refine_search=true"]))
-            for name, model, flags in variants:
+            variants = [("unc1", "DIRL -unc iter 1", ["--no-uncertainty"], method)]
+            if cfg.compare_search and not searches(cfg, 1):
+                variants.insert(0, ("search1", SEARCH_ROW, ["--set", "refine_search=true"],
+                                    "search"))  # fmt: skip
+            for name, model, flags, alt_method in variants:
                 alt = runs / name
                 step(f"train-{tag}-{name}", iterate_cmd(cfg, data, alt, *common, "--init",
                      str(run / "checkpoints" / "world_model.pt"), *flags,
                      "--set", "world_model_steps=0", "--set", f"refine_steps={cfg.refine_steps}"),
                      alt / ".done")  # fmt: skip
                 alt_policy = select(cfg, step, f"{tag}-{name}", 1, alt, previous, data, imitated)
-                row(model, 1, alt, data, alt_policy)
+                row(model, 1, alt, data, alt_policy, refinement=alt_method)
         # Imitation on as many frames as this iteration had, from the second demonstration
         # pool (whole episodes in name order, so iteration k's set extends iteration k-1's).
         equal = [expert, *top_up(extra, frames_in(data) - expert_frames)]
@@ -319,7 +334,7 @@ def planned_steps(cfg: StudyConfig) -> int:
     chains += [(x, s, cfg.robustness_iterations) for x in cfg.demo_noise if x
                for s in cfg.robustness_seeds]  # fmt: skip
     per_dirl, per_unc = (6, 3) if cfg.select_by_driving else (5, 2)  # + a selection each
-    per_unc *= 2 if cfg.compare_search and not cfg.refine_search else 1  # the search row too
+    per_unc *= 2 if cfg.compare_search and not searches(cfg, 1) else 1  # the search row too
     per_dirl += 1 if cfg.takeover_seconds else 0  # the take-over drives
     per_dirl += 1 if cfg.reimitate_steps and cfg.select_by_driving else 0  # before refinement
     per_chain = sum(2 + per_dirl * k + (per_unc if sigma == 0 else 0) for sigma, _, k in chains)

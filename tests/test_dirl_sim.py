@@ -64,6 +64,11 @@ def test_the_plan_counts_every_step_the_study_runs():
         alone = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
                                 "iterations=2", "--set", no_row])  # fmt: skip
         assert dirl_sim.planned_steps(alone) == 4 + 2 * 21 + 10
+    # search from iteration 2: iteration 1 by the gradient, so its search row is run
+    later = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
+                            "iterations=2", "--set", "refine_search=true", "--set",
+                            "search_from=2"])  # fmt: skip
+    assert dirl_sim.planned_steps(later) == dirl_sim.planned_steps(cfg)
     # without the selection by driving, no selection and no before-refinement row
     off = dataclasses.replace(cfg, select_by_driving=False)
     assert dirl_sim.planned_steps(off) == 4 + 2 * 18 + 8
@@ -251,3 +256,13 @@ def test_every_run_gets_the_refinement_method_and_its_safeguards():
     assert run.refine_search is True and run.refine_search_margin == 0.5
     assert run.refine_center_gradient is False and run.refine_candidates_every == 100
     assert "refine_search=false" in dirl_sim.run_settings(dirl_sim.parse([]), 0, 0)
+
+
+def test_search_from_refines_later_iterations_by_search_and_earlier_by_the_gradient():
+    cfg = dirl_sim.parse(["--set", "refine_search=true", "--set", "search_from=2"])
+    method = {k: dirl_sim.run_settings(cfg, 0, 100, iteration=k) for k in (1, 2, 3)}
+    assert "refine_search=false" in method[1]
+    assert "refine_search=true" in method[2] and "refine_search=true" in method[3]
+    assert [dirl_sim.searches(cfg, k) for k in (1, 2, 3)] == [False, True, True]
+    off = dirl_sim.parse(["--set", "search_from=2"])  # without refine_search: never
+    assert not any(dirl_sim.searches(off, k) for k in (1, 2, 3))

@@ -215,3 +215,24 @@ def test_world_model_normalises_targets_like_its_inputs():
     assert x[1, 3, :, 5, 7].tolist() == pytest.approx([2.0, -2.0, -1.0], abs=1e-5)
     assert world.normalise_speed(torch.tensor([2.0])).item() == pytest.approx(2.0)
     assert world.denormalise_speed(torch.tensor([2.0])).item() == pytest.approx(2.0)
+
+
+def test_world_model_encodes_a_frame_once_for_its_sequences():
+    """K sequences per frame (the search, the counterfactual check) give what K copies of the
+    frame give, and the encoder runs on the N frames only."""
+    torch.manual_seed(0)
+    world = WorldModel(TINY).eval()
+    image, speed, _ = batch(2, TINY)
+    actions = torch.rand(2 * 3, TINY.horizon, 2) * 2 - 1
+    calls = []
+    world.backbone.register_forward_hook(lambda m, i, o: calls.append(i[0].shape[0]))
+    with torch.no_grad():
+        shared = world.imagine(image, speed, actions, 5.0)
+        copies = world.imagine(image.repeat_interleave(3, 0), speed.repeat_interleave(3, 0),
+                               actions, 5.0)  # fmt: skip
+    assert calls == [2, 6]
+    for name, value in shared.items():
+        assert value.shape == (6, TINY.horizon)
+        torch.testing.assert_close(value, copies[name], rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="5 sequences, 2 frames"):
+        world(image, speed, actions[:5])

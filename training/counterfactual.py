@@ -104,8 +104,8 @@ def score(world_model, data: dict, cfg) -> dict:
     imagined_speed, risk, objective = np.zeros((n, k, h)), np.zeros((n, k)), np.zeros((n, k))
     terms = {name: np.zeros((n, k)) for name in ("speed", "collision", "uncertainty")}
     for i in range(n):
-        image = torch.from_numpy(data["image"][i]).expand(k, *data["image"].shape[1:])
-        speed = torch.full((k, 1), float(data["speed"][i]))
+        image = torch.from_numpy(data["image"][i : i + 1])  # encoded once for the k sequences
+        speed = torch.full((1, 1), float(data["speed"][i]))
         actions = torch.from_numpy(data["actions"][i])
         out = world_model.imagine(image, speed, actions, cfg.uncertainty_clip, corrects(cfg))
         imagined_speed[i] = out["speed"].numpy()

@@ -307,7 +307,13 @@ class WorldModel(_Normalised):
         self.register_buffer("collision_class_weight", torch.ones(1))
 
     def forward(self, image: Tensor, speed: Tensor, actions: Tensor) -> WorldPrediction:
+        """N frames, N·K action sequences (start i's are rows i·K…i·K+K−1): a frame is encoded
+        once for its K sequences (the search and the check imagine K alternatives per start)."""
         context = self._encode(image, speed)
+        k, rest = divmod(actions.shape[0], context.shape[0])
+        if rest or k < 1:
+            raise ValueError(f"world model: {actions.shape[0]} sequences, {len(context)} frames")
+        context = context.repeat_interleave(k, dim=0) if k > 1 else context
         x = self.action_net(actions.to(torch.float32))
         states: list[Tensor] = []
         for init, gru in zip(self.init_state, self.gru, strict=True):
@@ -348,7 +354,7 @@ class WorldModel(_Normalised):
         prior_correction: bool = True,
     ) -> dict[str, Tensor]:
         """What this world model expects an action sequence to do, as refinement scores it:
-        (N, H) speed in m/s, p(collision) and the three uncertainties, each capped at
+        (N·K, H) speed in m/s, p(collision) and the three uncertainties, each capped at
         `uncertainty_clip` (u explodes as α → 1; the cap is per pixel before the mean, so one
         exploding pixel cannot dominate). Gradients flow to `actions` (DreamerV3: the world
         model owns imagination; refinement and the counterfactual check only call it).

@@ -62,10 +62,8 @@ def search_targets(world_model, image, speed, plan, score, clip: float, correct:
     `score` maps imagine()'s output to the (N·K,) sequence objectives (refine.sequence_objective
     with the run's weights)."""
     seqs = alternatives(plan.detach())
-    n, k = seqs.shape[:2]
-    images = image.repeat_interleave(k, dim=0)
-    speeds = speed.repeat_interleave(k, dim=0)
-    imagined = world_model.imagine(images, speeds, seqs.flatten(0, 1), clip, correct)
+    n, k = seqs.shape[:2]  # each start frame encoded once for its k sequences (imagine)
+    imagined = world_model.imagine(image, speed, seqs.flatten(0, 1), clip, correct)
     chosen = best_moves(score(imagined).view(n, k), margin)
     return seqs[torch.arange(n), chosen], chosen
 
