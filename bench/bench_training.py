@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 PROFILES = ("tiny", "cpu")
 STEPS = {"tiny": 20, "cpu": 12}
 WARMUP = 2
-STAGES = ("imitation", "world_model", "refine")
+STAGES = ("imitation", "world_model", "refine", "refine_search")
 # Samples/s of the cpu profile before issue 13's speed work (2026-11-22, this 2-core machine,
 # 2 torch threads, same sim episodes): width 24 at 96×96, 32×32 futures, a DataLoader reading
 # memory maps and resizing 10 future frames per window, imitation included.
@@ -46,7 +46,8 @@ def _stage(name, cfg, policy, world_model, windows, free, norm):
     if name == "world_model":
         return train_world_model(cfg, world_model, windows, norm, collision_weight=5.0)
     world_model.unfreeze()
-    return train_refine(cfg, policy, world_model, windows, norm)
+    searching = dataclasses.replace(cfg, refine_search=name == "refine_search")
+    return train_refine(searching, policy, world_model, windows, norm)
 
 
 def profile_throughput(profile: str, episodes) -> dict:
@@ -82,7 +83,7 @@ def profile_throughput(profile: str, episodes) -> dict:
         "data_windows_per_s": data_rate,
     }
     for stage in STAGES:
-        prefix = {"imitation": "imitation", "world_model": "world_model", "refine": "refine"}[stage]
+        prefix = "refine" if stage.startswith("refine") else stage
         batch = getattr(cfg, f"{prefix}_batch_size")
         for steps in (WARMUP, STEPS[profile]):
             run = dataclasses.replace(cfg, **{f"{prefix}_steps": steps})
@@ -95,6 +96,38 @@ def profile_throughput(profile: str, episodes) -> dict:
             "ratio_over_data_ceiling": result.samples_per_s / data_rate,
         }
     return out
+
+
+def imagine_shared_over_copies(k: int = 8, starts: int = 32, repeats: int = 6) -> dict:
+    """The search's imagination (cpu profile, 1 thread, no gradient): K sequences per start
+    frame with the frame encoded once (WorldModel.forward) against K copies of the frame, timed
+    alternately; the median of `repeats` each."""
+    import torch
+
+    from training.models import WorldModel
+    from training.profiles import get_profile
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    profile = get_profile("cpu")
+    world = WorldModel(profile).eval()
+    g = torch.Generator().manual_seed(0)
+    image = torch.randint(0, 256, (starts, 96, 96, 3), dtype=torch.uint8, generator=g)
+    speed = torch.rand(starts, 1, generator=g)
+    actions = torch.rand(starts * k, profile.horizon, 2, generator=g) * 2 - 1
+    inputs = {"shared": (image, speed),
+              "copies": (image.repeat_interleave(k, 0), speed.repeat_interleave(k, 0))}  # fmt: skip
+    seconds: dict[str, list[float]] = {name: [] for name in inputs}
+    with torch.no_grad():
+        for _ in range(repeats):
+            for name, (frames, speeds) in inputs.items():
+                start = time.perf_counter()
+                world.imagine(frames, speeds, actions, 5.0)
+                seconds[name].append(time.perf_counter() - start)
+    torch.set_num_threads(threads)
+    median = {name: sorted(v)[len(v) // 2] for name, v in seconds.items()}
+    return {"k": k, "starts": starts, "shared_s": median["shared"], "copies_s": median["copies"],
+            "copies_over_shared": median["copies"] / median["shared"]}  # fmt: skip
 
 
 def run() -> dict:
@@ -142,6 +175,15 @@ def run() -> dict:
         ratio = best["tiny"][stage]["samples_per_s"] / best["cpu"][stage]["samples_per_s"]
         result[f"ratio_tiny_over_cpu_{stage}_1_thread"] = ratio
         print(f"   {stage}: tiny runs {ratio:.1f}x the samples/s of cpu (1 thread)")
+    cpu_1 = best["cpu"]
+    ratio = cpu_1["refine"]["samples_per_s"] / cpu_1["refine_search"]["samples_per_s"]
+    result["ratio_refine_gradient_over_search_cpu_1_thread"] = ratio
+    print(f"   cpu, 1 thread: gradient refinement runs {ratio:.1f}x the start frames/s of search")
+    shared = result["imagine_search"] = imagine_shared_over_copies()
+    print(f"   the search's imagination ({shared['starts']} starts x {shared['k']} sequences, cpu, "
+          f"1 thread): {shared['shared_s']:.2f} s with each frame encoded once, "
+          f"{shared['copies_s']:.2f} s with {shared['k']} copies: "
+          f"{shared['copies_over_shared']:.2f}x")  # fmt: skip
     return result
 
 
