@@ -4,8 +4,10 @@ Each stage runs through the same loop iterate.py uses (batches gathered from one
 episodes the real stack records in the simulator, Adam, gradient clipping), with the profile's
 preset batch sizes, after a few warm-up steps, at 1 torch thread and at torch's default thread
 count (on a small machine shared with other work, extra intra-op threads can cost more than they
-give). Also timed: get_batch alone, the data ceiling of every stage. The cpu profile's figures
-are compared with BASELINE, measured before the training-speed work of issue 13.
+give). Also timed: get_batch alone, the data ceiling of every stage; refinement by search
+(refine_search) beside the gradient's; and the search's imagination with each start frame
+encoded once against K copies of it. The cpu profile's figures are compared with BASELINE,
+measured before the training-speed work of issue 13.
 """
 
 from __future__ import annotations
