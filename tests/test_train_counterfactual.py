@@ -14,6 +14,7 @@ torch = pytest.importorskip("torch")
 
 from training import counterfactual as cf  # noqa: E402
 from training.iterate import main as iterate  # noqa: E402
+from training.refine_search import alternatives  # noqa: E402
 
 
 def test_auroc_counts_only_pairs_from_the_same_start():
@@ -111,6 +112,51 @@ def test_the_search_check_scores_the_move_refine_search_would_make():
     assert cf.search_check(imagined[:, :5], truth[:, :5], names[:5]) == {}
 
 
+class _UnsureOfFullThrottle:
+    """A stand-in that imagines speed = throttle with no collisions, and is unsure (u_image 5
+    per step) only where the throttle is full: the speed term prefers full throttle, the
+    uncertainty term the plan."""
+
+    horizon = 3
+
+    def eval(self):
+        return self
+
+    def imagine(self, image, speed, actions, clip, correct):
+        v = actions[..., 1].clone()
+        zero = torch.zeros_like(v)
+        unsure = 5.0 * (actions[..., 1] > 0.99).float()
+        return {"speed": v, "p_collision": zero, "u_image": unsure, "u_speed": zero,
+                "u_collision": zero}  # fmt: skip
+
+
+def test_the_check_scores_the_search_with_and_without_the_uncertainty_term():
+    """Truly, full throttle beats the plan (half throttle) from both starts. The paper's
+    objective stays on the plan (the uncertainty term outweighs the speed); without the term the
+    search moves to full throttle, and the move is right."""
+    names = ["plan", "steer-0.6", "steer-0.3", "steer+0.3", "steer+0.6", "lift", "brake", "full",
+             "random"]  # fmt: skip
+    n, h = 2, 3
+    plan = torch.zeros(n, h, 2)
+    plan[..., 1] = 0.5
+    actions = torch.cat([alternatives(plan), plan[:, None]], dim=1).numpy()  # "random": the plan
+    true_speed = np.clip(actions[..., 1], 0.0, None).astype(np.float64)
+    data = {"actions": actions, "image": np.zeros((n, 4, 4, 3), np.uint8),
+            "speed": np.full(n, 0.5, np.float32), "true_speed": true_speed,
+            "true_collision": np.zeros_like(true_speed), "mask": np.ones_like(true_speed),
+            "meta": {"sequences": names}}  # fmt: skip
+    cfg = SimpleNamespace(refine_w_speed=1.0, refine_w_collision=10.0, refine_w_uncertainty=1.0,
+                          no_uncertainty=False, uncertainty_clip=10.0)  # fmt: skip
+    result = cf.score(_UnsureOfFullThrottle(), data, cfg)
+    assert result["search"]["margin_0"]["moves"] == 0.0
+    without = result["search_without_uncertainty"]["margin_0"]
+    assert without["moves"] == 1.0 and without["right"] == 1.0
+    assert without["true_gain"] == pytest.approx(h * 0.5)
+    lines = "\n".join(cf.by_sequence_table(result))
+    assert "refine_search without the uncertainty term" in lines
+
+
+@pytest.mark.timeout(300)  # an iteration and a simulator set: minutes on a loaded machine
 def test_an_iteration_reports_its_world_model_counterfactual_check(sim_episodes, tmp_path):
     run = tmp_path / "iter1"
     small = ["--profile", "tiny", "--set", "threads=1", "--set", "progress=false",
@@ -154,3 +200,4 @@ def test_an_iteration_reports_its_world_model_counterfactual_check(sim_episodes,
     assert "| brake |" in (run / "report.md").read_text()
     assert {"oracle_true_gain", "margin_0", "margin_2"} <= set(result["search"])
     assert "Search among the alternatives" in (run / "report.md").read_text()
+    assert set(result["search_without_uncertainty"]) == set(result["search"])

@@ -156,6 +156,11 @@ def score(world_model, data: dict, cfg) -> dict:
         },
         "gradient_agreement": gradient_agreement(world_model, data, cfg, weights, truth),
         "search": search_check(objective, truth, list(data["meta"].get("sequences", ()))),
+        # The same search with the uncertainty term left out (-unc's objective): whether the
+        # paper's safety term steers the choice toward or away from what truly drives better.
+        "search_without_uncertainty": search_check(
+            objective - terms["uncertainty"], truth, list(data["meta"].get("sequences", ()))
+        ),
         "plan_is_best_imagined": float(np.mean(objective.argmin(axis=1) == 0)),
         "plan_is_best_true": float(np.mean(truth.argmin(axis=1) == 0)),
     }
@@ -305,6 +310,8 @@ def by_sequence_table(result: dict) -> list[str]:
         lines += ["", f"Gradient at the plan with the sign of the true difference (0.5 = a coin): "
                   f"{shown}."]  # fmt: skip
     lines += search_lines(result.get("search") or {})  # absent in results from before it
+    lines += search_lines(result.get("search_without_uncertainty") or {}, "without the "
+                          "uncertainty term")  # fmt: skip
     terms = ", ".join(f"{k} {v:.2f}" for k, v in result["rank_correlation_terms"].items())
     true_speed = result["rank_correlation_true_speed_term"]
     lines += ["", f"Rank correlation with the true objective of each imagined term alone: "
@@ -312,7 +319,7 @@ def by_sequence_table(result: dict) -> list[str]:
     return lines
 
 
-def search_lines(search: dict) -> list[str]:
+def search_lines(search: dict, variant: str = "") -> list[str]:
     """Markdown: what refine_search would choose from these starts, per margin."""
     if not search:
         return []
@@ -322,7 +329,8 @@ def search_lines(search: dict) -> list[str]:
             right = "—" if r["right"] is None else f"{r['right']:.2f}"
             parts.append(f"margin {key.removeprefix('margin_')}: moves {r['moves']:.2f}, "
                          f"right {right}, true gain {r['true_gain']:+.2f}")  # fmt: skip
-    return ["", f"Search among the alternatives (refine_search): {'; '.join(parts)} (oracle "
+    how = f" {variant}" if variant else ""
+    return ["", f"Search among the alternatives (refine_search{how}): {'; '.join(parts)} (oracle "
             f"gain {search['oracle_true_gain']:+.2f} per start)."]  # fmt: skip
 
 
