@@ -63,6 +63,8 @@ from bench.dirl_steps import (
     frames_in,
     iterate_cmd,
     iteration_drives,
+    plan,
+    searches,
     select,
     top_up,
 )
@@ -203,11 +205,6 @@ QUICK = dict(
 )  # fmt: skip
 
 
-def searches(cfg: StudyConfig, iteration: int) -> bool:
-    """Whether DIRL iteration `iteration` refines by search (else by the gradient)."""
-    return cfg.refine_search and iteration >= cfg.search_from
-
-
 def run_settings(cfg: StudyConfig, seed: int, every: int, iteration: int = 1) -> list[str]:
     """The iterate.py arguments every run of a chain shares: its seed, the refinement
     safeguards and method (iteration `iteration`'s), the check, and how often refinement keeps
@@ -329,18 +326,6 @@ def chain(
         previous = policy
 
 
-def planned_steps(cfg: StudyConfig) -> int:
-    chains = [(0.0, s, cfg.iterations) for s in cfg.seeds if 0.0 in cfg.demo_noise]
-    chains += [(x, s, cfg.robustness_iterations) for x in cfg.demo_noise if x
-               for s in cfg.robustness_seeds]  # fmt: skip
-    per_dirl, per_unc = (6, 3) if cfg.select_by_driving else (5, 2)  # + a selection each
-    per_unc *= 2 if cfg.compare_search and not searches(cfg, 1) else 1  # the search row too
-    per_dirl += 1 if cfg.takeover_seconds else 0  # the take-over drives
-    per_dirl += 1 if cfg.reimitate_steps and cfg.select_by_driving else 0  # before refinement
-    per_chain = sum(2 + per_dirl * k + (per_unc if sigma == 0 else 0) for sigma, _, k in chains)
-    return 2 * len(cfg.demo_noise) + per_chain
-
-
 # ------------------------------------------------------------------------------- main
 def parse(argv: list[str] | None) -> StudyConfig:
     p = argparse.ArgumentParser(prog="python -m bench.dirl_sim", description=__doc__.split("\n")[0])
@@ -372,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
     if not cfg.report_only:  # a report must not relabel the run it reads
         (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
     started = time.monotonic()
-    step = StudyStep(out, planned_steps(cfg), report_only=cfg.report_only,
+    step = StudyStep(out, plan(cfg), report_only=cfg.report_only,
                      parallel=cfg.parallel, cwd=ROOT)  # fmt: skip
     print(f"dirl_sim: profile {cfg.profile}, seeds {list(cfg.seeds)}, {step.planned} steps, "
           f"{cfg.parallel} at once, out {out}", flush=True)  # fmt: skip

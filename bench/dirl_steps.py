@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import shutil
 import sys
+from collections import Counter
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -61,6 +62,39 @@ def top_up(pool: Path, frames: int) -> list[Path]:
     if total < frames:
         raise SystemExit(f"dirl_sim: {pool} holds {total} frames, {frames} needed: more tracks")
     return picked
+
+
+def searches(cfg: StudyConfig, iteration: int) -> bool:
+    """Whether DIRL iteration `iteration` refines by search (else by the gradient)."""
+    return cfg.refine_search and iteration >= cfg.search_from
+
+
+def plan(cfg: StudyConfig) -> Counter[str]:
+    """Every step the study will run (or find finished), counted by kind (study_steps.step_kind
+    of its name): the progress count and the ETA's weights. A chain: IL (train, eval), then per
+    DIRL iteration its drives (and take-overs), training, selection, evaluation (and the row
+    before refinement's), IL at its frames (train, eval); at σ 0, iteration 1's -unc (and the
+    search row) with their selections and evaluations."""
+    kinds: Counter[str] = Counter(demos=2 * len(cfg.demo_noise))
+    chains = [(0.0, cfg.iterations) for _ in cfg.seeds if 0.0 in cfg.demo_noise]
+    chains += [(x, cfg.robustness_iterations) for x in cfg.demo_noise if x
+               for _ in cfg.robustness_seeds]  # fmt: skip
+    selects = cfg.select_by_driving
+    for sigma, iterations in chains:
+        kinds.update({"train il": 1, "eval": 1})
+        for k in range(1, iterations + 1):
+            kinds.update({"drive": 1, "train dirl1" if k == 1 else "train dirl": 1, "eval": 1,
+                          "train il-equal": 1})  # fmt: skip
+            kinds["eval"] += 1  # IL at its frames
+            kinds["takeovers"] += 1 if cfg.takeover_seconds else 0
+            kinds["select"] += 1 if selects else 0
+            kinds["eval"] += 1 if cfg.reimitate_steps and selects else 0  # before refinement
+        if sigma == 0:
+            alternatives = ["unc"] + (["search"] if cfg.compare_search and not searches(cfg, 1)
+                                      else [])  # fmt: skip
+            for name in alternatives:
+                kinds.update({f"train {name}": 1, "eval": 1, "select": 1 if selects else 0})
+    return +kinds  # kinds with no step left out
 
 
 # ------------------------------------------------------------------------------- the steps

@@ -9,16 +9,47 @@ and seed) are independent of each other, so every chain runs in its own thread a
 for one of `parallel` slots; each step is given its share of the threads and simulator
 processes (StudyConfig.step_threads/step_jobs). A chain's own steps stay in order, so its
 results do not depend on how the chains interleave.
+
+The ETA weighs the steps left by their kind (a world model's training takes 20 times a drive):
+each kind at the mean of its steps run so far, a kind not run yet at its typical time scaled by
+how this run's steps compare with theirs. A plain mean over the steps run (before
+2026-11-25) jumped with the order of the steps: the study of 2026-11-24 said 275 min at its 5th
+step, 60 at its 13th and 153 at its 14th; and it counted the laps copied for a same-weights
+evaluation as steps run.
 """
 
 from __future__ import annotations
 
+import re
 import subprocess
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections import Counter, defaultdict
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+
+# Seconds a step of each kind took in the studies of 2026-11-24/25 (2-core EPYC, two steps at
+# once with one torch thread and one simulator process each; bench/results/*/logs): the ETA's
+# guess for a kind until a step of it has run here. "train dirl1" trains its world model from
+# scratch, later iterations continue it.
+TYPICAL_S = {"demos": 240, "train il": 900, "train dirl1": 1400, "train dirl": 890,
+             "train il-equal": 830, "train unc": 150, "train search": 215, "select": 260,
+             "eval": 150, "drive": 70, "takeovers": 50}  # fmt: skip
+ANY = "step"  # the one kind of a plan given as a plain count
+
+
+def step_kind(name: str) -> str:
+    """What a study step's name says it does: "eval-noise0-seed1-dirl2-imitated" → "eval",
+    "train-noise0-seed1-il-equal2" → "train il-equal", "train-noise1-seed0-dirl1" → "train
+    dirl1", "expert-noise0" → "demos"."""
+    head, _, rest = name.partition("-")
+    if head in ("expert", "extra"):
+        return "demos"
+    if head != "train":
+        return head
+    model = re.sub(r"^noise[^-]*-seed\d+-", "", rest)
+    return "train dirl1" if model == "dirl1" else "train " + re.sub(r"\d+$", "", model)
 
 
 class NotRun(Exception):
@@ -31,14 +62,14 @@ class Stopped(Exception):
 
 class StudyStep:
     """Runs one command with its output in OUT/logs/NAME.log; a failed command stops the study
-    (the other chains stop before their next step). Counts finished steps against the planned
-    number and prints an ETA from the wall time spent so far. With `report_only`, nothing runs:
-    a step that has not finished raises NotRun."""
+    (the other chains stop before their next step). Counts finished steps against the plan
+    (steps by kind, bench/dirl_steps.plan; or a plain count) and prints an ETA. With
+    `report_only`, nothing runs: a step that has not finished raises NotRun."""
 
     def __init__(
         self,
         out: Path,
-        planned: int,
+        plan: Mapping[str, int] | int,
         *,
         report_only: bool = False,
         parallel: int = 1,
@@ -46,17 +77,23 @@ class StudyStep:
     ) -> None:
         self.logs = Path(out) / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
-        self.planned, self.done, self.ran = planned, 0, 0
-        self.report_only, self.cwd = report_only, cwd
-        self.slots = threading.BoundedSemaphore(max(1, parallel))
+        self.plan = Counter(plan) if isinstance(plan, Mapping) else Counter({ANY: plan})
+        self.planned, self.done = sum(self.plan.values()), 0
+        self.done_by_kind: Counter[str] = Counter()
+        self.seconds: defaultdict[str, list[float]] = defaultdict(list)  # steps run, by kind
+        self.report_only, self.cwd, self.parallel = report_only, cwd, max(1, parallel)
+        self.slots = threading.BoundedSemaphore(self.parallel)
         self.lock = threading.Lock()
         self.failed = threading.Event()
-        self.first_start: float | None = None
+
+    def kind(self, name: str) -> str:
+        return ANY if ANY in self.plan else step_kind(name)
 
     def __call__(self, name: str, argv: list[str], marker: Path) -> None:
         """Run unless `marker` exists; touch it when the command succeeded."""
         with self.lock:
             self.done += 1
+            self.done_by_kind[self.kind(name)] += 1
         if marker.exists():
             return
         if self.report_only:
@@ -66,8 +103,6 @@ class StudyStep:
                 raise Stopped(name)
             log = self.logs / f"{name}.log"
             started = time.monotonic()
-            with self.lock:
-                self.first_start = self.first_start or started
             with log.open("w") as fh:
                 fh.write("$ " + " ".join(argv) + "\n")
                 fh.flush()
@@ -78,20 +113,34 @@ class StudyStep:
             raise SystemExit(f"dirl_sim: {name} failed (exit {code}); see {log}")
         marker.parent.mkdir(parents=True, exist_ok=True)
         marker.touch()
+        with self.lock:
+            self.seconds[self.kind(name)].append(took)
         self._progress(name, f"{took:.0f} s")
 
     def reuse(self, name: str, why: str) -> None:
         """A step whose result was taken from an identical earlier one: counted, not run."""
         with self.lock:
             self.done += 1
+            self.done_by_kind[self.kind(name)] += 1
         self._progress(name, why)
 
-    def _progress(self, name: str, what: str) -> None:
+    def eta_s(self) -> float:
+        """Wall seconds the planned steps not yet counted will take, `parallel` at a time."""
         with self.lock:
-            self.ran += 1
-            left = max(self.planned - self.done, 0)
-            elapsed = time.monotonic() - (self.first_start or time.monotonic())
-            eta = elapsed / self.ran * left / 60
+            mean = {k: sum(v) / len(v) for k, v in self.seconds.items() if v}
+            typical = [(TYPICAL_S[k], m) for k, m in mean.items() if k in TYPICAL_S]
+            scale = sum(m for _, m in typical) / sum(t for t, _ in typical) if typical else 1.0
+            ran = [t for v in self.seconds.values() for t in v]
+            other = sum(ran) / len(ran) if ran else 0.0  # a kind with no typical time
+            left = 0.0
+            for kind, n in self.plan.items():
+                each = mean.get(kind, TYPICAL_S[kind] * scale if kind in TYPICAL_S else other)
+                left += max(n - self.done_by_kind[kind], 0) * each
+        return left / self.parallel
+
+    def _progress(self, name: str, what: str) -> None:
+        eta = self.eta_s() / 60
+        with self.lock:
             print(f"  [{self.done}/{self.planned}] {name}: {what} (ETA ~{eta:.0f} min)", flush=True)
 
 

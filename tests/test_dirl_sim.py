@@ -13,6 +13,7 @@ import json
 import pytest
 
 from bench import dirl_sim, dirl_steps, dirl_table
+from bench.study_steps import TYPICAL_S, step_kind
 
 
 def _row(model, seed, completions, frames=1000, sigma=0.0, iteration=0, check=None):
@@ -52,29 +53,58 @@ def test_the_drives_explore_with_the_configured_noise():
     assert dirl_steps.explore_args(dirl_sim.parse(["--set", "drive_explore=false"])) == []
 
 
+def _total(cfg) -> int:
+    return sum(dirl_steps.plan(cfg).values())
+
+
 def test_the_plan_counts_every_step_the_study_runs():
     cfg = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
                           "iterations=2", "--set", "robustness_iterations=1"])  # fmt: skip
     # demos 2×2; σ 0 per seed: IL 2 + 2 iterations × (drive, take-overs, train, select, eval,
     # eval before refinement + IL at its frames train, eval) + -unc 3 (train, select, eval)
     # + search 3 = 24; σ 1: IL 2 + 1 iteration × 8 = 10
-    assert dirl_sim.planned_steps(cfg) == 4 + 2 * 24 + 10
+    assert _total(cfg) == 4 + 2 * 24 + 10
     # without the search row (or with search as the method itself): -unc alone
     for no_row in ("compare_search=false", "refine_search=true"):
         alone = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
                                 "iterations=2", "--set", no_row])  # fmt: skip
-        assert dirl_sim.planned_steps(alone) == 4 + 2 * 21 + 10
+        assert _total(alone) == 4 + 2 * 21 + 10
     # search from iteration 2: iteration 1 by the gradient, so its search row is run
     later = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
                             "iterations=2", "--set", "refine_search=true", "--set",
                             "search_from=2"])  # fmt: skip
-    assert dirl_sim.planned_steps(later) == dirl_sim.planned_steps(cfg)
+    assert _total(later) == _total(cfg)
     # without the selection by driving, no selection and no before-refinement row
     off = dataclasses.replace(cfg, select_by_driving=False)
-    assert dirl_sim.planned_steps(off) == 4 + 2 * 18 + 8
+    assert _total(off) == 4 + 2 * 18 + 8
     # the paper's iterations (no take-overs, imitation once): drive, train, select, eval, IL ×2
     paper = dataclasses.replace(cfg, takeover_seconds=0.0, reimitate_steps=0)
-    assert dirl_sim.planned_steps(paper) == 4 + 2 * 20 + 8
+    assert _total(paper) == 4 + 2 * 20 + 8
+
+
+def test_the_plan_counts_steps_by_the_kind_their_names_say():
+    """The ETA weighs each kind by its time: the plan's kinds are the ones step_kind reads from
+    the names the study gives its steps, and each has a typical time."""
+    cfg = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
+                          "iterations=2", "--set", "robustness_iterations=1"])  # fmt: skip
+    kinds = dirl_steps.plan(cfg)
+    # 2 σ0 chains × 2 iterations + 1 σ1 chain × 1; iteration 1 trains its world model anew
+    assert kinds["train dirl1"] == 3 and kinds["train dirl"] == 2
+    assert kinds["train il"] == 3 and kinds["train il-equal"] == 5
+    assert kinds["train unc"] == kinds["train search"] == 2 and kinds["demos"] == 4
+    assert kinds["drive"] == kinds["takeovers"] == 5 and kinds["select"] == 5 + 4
+    # per chain: IL; per iteration: DIRL, before refinement, IL at its frames; -unc, search
+    assert kinds["eval"] == 3 + 5 * 3 + 2 * 2
+    assert set(kinds) <= set(TYPICAL_S)
+    names = {
+        "expert-noise0.5": "demos", "extra-noise1": "demos", "train-noise0-seed1-il": "train il",
+        "train-noise0.5-seed2-dirl1": "train dirl1", "train-noise0-seed0-dirl3": "train dirl",
+        "train-noise0-seed0-il-equal2": "train il-equal", "train-noise0-seed0-unc1": "train unc",
+        "train-noise0-seed0-search1": "train search", "select-noise0-seed0-dirl2": "select",
+        "eval-noise0-seed0-dirl2-imitated": "eval", "drive-noise0-seed0-iter2": "drive",
+        "takeovers-noise1-seed0-iter1": "takeovers",
+    }  # fmt: skip
+    assert {name: step_kind(name) for name in names} == names
 
 
 class _Steps:

@@ -41,7 +41,7 @@ def most_at_once(spans: list[tuple[float, float]]) -> int:
 
 
 def test_chains_share_the_slots_and_their_rows_keep_chain_order(tmp_path, capsys):
-    step = StudyStep(tmp_path, planned=8, parallel=2)
+    step = StudyStep(tmp_path, 8, parallel=2)
     names = ["a", "b", "c", "d"]
     rows, missing = run_chains([functools.partial(chain, step, tmp_path, n, 2) for n in names])
     assert rows == [f"{n}-{k}" for n in names for k in range(2)] and missing == []
@@ -51,19 +51,19 @@ def test_chains_share_the_slots_and_their_rows_keep_chain_order(tmp_path, capsys
     # Run again: every step has its marker, nothing runs (the study resumes where it stopped).
     for p in tmp_path.glob("*.json"):
         p.unlink()
-    again = StudyStep(tmp_path, planned=8, parallel=2)
+    again = StudyStep(tmp_path, 8, parallel=2)
     assert run_chains([functools.partial(chain, again, tmp_path, n, 2) for n in names])[0] == rows
     assert intervals(tmp_path) == []
 
 
 def test_one_at_a_time_when_parallel_is_one(tmp_path):
-    step = StudyStep(tmp_path, planned=4, parallel=1)
+    step = StudyStep(tmp_path, 4, parallel=1)
     run_chains([functools.partial(chain, step, tmp_path, n, 2) for n in "ab"])
     assert most_at_once(intervals(tmp_path)) == 1
 
 
 def test_a_failed_step_stops_every_chain_and_is_reported_after_they_end(tmp_path):
-    step = StudyStep(tmp_path, planned=6, parallel=2)
+    step = StudyStep(tmp_path, 6, parallel=2)
     chains = [functools.partial(chain, step, tmp_path, "bad", 3, fail_at=0),
               functools.partial(chain, step, tmp_path, "good", 3)]  # fmt: skip
     with pytest.raises(SystemExit, match="bad-0 failed"):
@@ -75,7 +75,32 @@ def test_a_failed_step_stops_every_chain_and_is_reported_after_they_end(tmp_path
 def test_report_only_runs_nothing_and_names_each_chain_s_first_missing_step(tmp_path):
     (tmp_path / "markers").mkdir()
     (tmp_path / "markers" / "a-0").touch()
-    step = StudyStep(tmp_path, planned=4, report_only=True)
+    step = StudyStep(tmp_path, 4, report_only=True)
     rows, missing = run_chains([functools.partial(chain, step, tmp_path, n, 2) for n in "ab"])
     assert rows == ["a-0"] and missing == ["a-1", "b-0"]
     assert intervals(tmp_path) == []
+
+
+def test_the_eta_weighs_the_steps_left_by_their_kind(tmp_path):
+    """Three trainings and three evaluations planned, one at a time. After one training of
+    600 s (typical 900: this machine is at 2/3) the evaluations are guessed at 2/3 of their
+    typical 150 s; once one has run, at its own time."""
+    step = StudyStep(tmp_path, {"train il": 3, "eval": 3}, parallel=1)
+    step.done_by_kind["train il"] += 1
+    step.seconds["train il"].append(600.0)
+    assert step.eta_s() == pytest.approx(2 * 600 + 3 * 100)
+    step.done_by_kind["eval"] += 1
+    step.seconds["eval"].append(50.0)
+    assert step.eta_s() == pytest.approx(2 * 600 + 2 * 50)
+    step.reuse("eval-noise0-seed0-dirl1-imitated", "same weights")  # counted, took nothing
+    assert step.eta_s() == pytest.approx(2 * 600 + 1 * 50)
+    assert step.seconds["eval"] == [50.0]
+    two = StudyStep(tmp_path, {"train il": 3, "eval": 3}, parallel=2)
+    assert two.eta_s() == pytest.approx((3 * 900 + 3 * 150) / 2), "typical times, two at once"
+
+
+def test_a_plain_count_plans_one_kind_of_step(tmp_path, capsys):
+    step = StudyStep(tmp_path, 4, parallel=2)
+    run_chains([functools.partial(chain, step, tmp_path, n, 2) for n in "ab"])
+    assert step.done_by_kind == {"step": 4} and len(step.seconds["step"]) == 4
+    assert step.eta_s() == 0.0 and "[4/4]" in capsys.readouterr().out
