@@ -160,6 +160,9 @@ class StudyConfig:
     # With refine_search false: a row "DIRL search iter 1" at σ 0, iteration 1's world model
     # and start policy refined by search, selected and evaluated like the others.
     compare_search: bool = True
+    # DIRL -unc (the paper's ablation) at every σ 0 iteration, each from that iteration's world
+    # model and start policy; False: at iteration 1 only, as the studies before 2026-11-25 ran it.
+    unc_every_iteration: bool = False
     # The third safeguard: refinement keeps a candidate every `refine_candidates_every` steps and
     # the policy it started from is one too; each is driven on validation placements and the best
     # is the iteration's policy (training/select_by_driving.py). False: the last step's policy.
@@ -221,6 +224,20 @@ def run_settings(cfg: StudyConfig, seed: int, every: int, iteration: int = 1) ->
            "--set", f"counterfactual_layout={cfg.layout}",
            "--set", f"w_image={cfg.w_image}",
            "--set", f"refine_candidates_every={every}"]  # fmt: skip
+
+
+def ablations(cfg: StudyConfig, k: int) -> list[tuple[str, str, list[str], str]]:
+    """σ 0 iteration k's variants of its refinement, each from the same world model and start
+    policy with one thing changed: (run name, row, iterate.py flags, refinement method). The
+    paper's -unc (no uncertainty term) at iteration 1, or every iteration with
+    unc_every_iteration; at iteration 1, with compare_search, search in place of the gradient."""
+    method = "search" if searches(cfg, k) else "gradient"
+    variants = []
+    if k == 1 and cfg.compare_search and not searches(cfg, 1):
+        variants.append(("search1", SEARCH_ROW, ["--set", "refine_search=true"], "search"))
+    if k == 1 or cfg.unc_every_iteration:
+        variants.append((f"unc{k}", f"DIRL -unc iter {k}", ["--no-uncertainty"], method))
+    return variants
 
 
 def chain(
@@ -301,21 +318,15 @@ def chain(
         row(f"DIRL iter {k}", k, run, data, policy, refinement=method)
         if imitated and cfg.select_by_driving:
             row(before_refinement(k), k, run, data, policy, candidate="imitated")
-        if k == 1 and sigma == 0:
-            # The same world model and start policy, one thing changed in refinement: the
-            # paper's ablation without the uncertainty term; refinement by search, not gradient.
-            variants = [("unc1", "DIRL -unc iter 1", ["--no-uncertainty"], method)]
-            if cfg.compare_search and not searches(cfg, 1):
-                variants.insert(0, ("search1", SEARCH_ROW, ["--set", "refine_search=true"],
-                                    "search"))  # fmt: skip
-            for name, model, flags, alt_method in variants:
+        if sigma == 0:
+            for name, model, flags, alt_method in ablations(cfg, k):
                 alt = runs / name
-                step(f"train-{tag}-{name}", iterate_cmd(cfg, data, alt, *common, "--init",
+                step(f"train-{tag}-{name}", iterate_cmd(cfg, data, alt, *settings, "--init",
                      str(run / "checkpoints" / "world_model.pt"), *flags,
                      "--set", "world_model_steps=0", "--set", f"refine_steps={cfg.refine_steps}"),
                      alt / ".done")  # fmt: skip
-                alt_policy = select(cfg, step, f"{tag}-{name}", 1, alt, previous, data, imitated)
-                row(model, 1, alt, data, alt_policy, refinement=alt_method)
+                alt_policy = select(cfg, step, f"{tag}-{name}", k, alt, previous, data, imitated)
+                row(model, k, alt, data, alt_policy, refinement=alt_method)
         # Imitation on as many frames as this iteration had, from the second demonstration
         # pool (whole episodes in name order, so iteration k's set extends iteration k-1's).
         equal = [expert, *top_up(extra, frames_in(data) - expert_frames)]

@@ -73,8 +73,8 @@ def plan(cfg: StudyConfig) -> Counter[str]:
     """Every step the study will run (or find finished), counted by kind (study_steps.step_kind
     of its name): the progress count and the ETA's weights. A chain: IL (train, eval), then per
     DIRL iteration its drives (and take-overs), training, selection, evaluation (and the row
-    before refinement's), IL at its frames (train, eval); at σ 0, iteration 1's -unc (and the
-    search row) with their selections and evaluations."""
+    before refinement's), IL at its frames (train, eval); at σ 0, -unc (iteration 1's, or every
+    iteration's) and iteration 1's search row, with their selections and evaluations."""
     kinds: Counter[str] = Counter(demos=2 * len(cfg.demo_noise))
     chains = [(0.0, cfg.iterations) for _ in cfg.seeds if 0.0 in cfg.demo_noise]
     chains += [(x, cfg.robustness_iterations) for x in cfg.demo_noise if x
@@ -90,8 +90,9 @@ def plan(cfg: StudyConfig) -> Counter[str]:
             kinds["select"] += 1 if selects else 0
             kinds["eval"] += 1 if cfg.reimitate_steps and selects else 0  # before refinement
         if sigma == 0:
-            alternatives = ["unc"] + (["search"] if cfg.compare_search and not searches(cfg, 1)
-                                      else [])  # fmt: skip
+            uncs = iterations if cfg.unc_every_iteration else min(iterations, 1)
+            alternatives = ["unc"] * uncs + (["search"] if cfg.compare_search
+                                             and not searches(cfg, 1) else [])  # fmt: skip
             for name in alternatives:
                 kinds.update({f"train {name}": 1, "eval": 1, "select": 1 if selects else 0})
     return +kinds  # kinds with no step left out

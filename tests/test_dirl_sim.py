@@ -105,6 +105,9 @@ def test_the_plan_counts_steps_by_the_kind_their_names_say():
         "takeovers-noise1-seed0-iter1": "takeovers",
     }  # fmt: skip
     assert {name: step_kind(name) for name in names} == names
+    # -unc at every σ 0 iteration: one more training, selection and evaluation per iteration
+    every = dataclasses.replace(cfg, unc_every_iteration=True)
+    assert dirl_steps.plan(every) - kinds == {"train unc": 2, "select": 2, "eval": 2}
 
 
 class _Steps:
@@ -296,3 +299,22 @@ def test_search_from_refines_later_iterations_by_search_and_earlier_by_the_gradi
     assert [dirl_sim.searches(cfg, k) for k in (1, 2, 3)] == [False, True, True]
     off = dirl_sim.parse(["--set", "search_from=2"])  # without refine_search: never
     assert not any(dirl_sim.searches(off, k) for k in (1, 2, 3))
+
+
+def test_the_ablation_without_uncertainty_can_follow_every_iteration():
+    """-unc at iteration 1 only (the studies before 2026-11-25), or at every iteration with that
+    iteration's refinement method; the search row at iteration 1 only, and only where iteration
+    1 refines by the gradient."""
+    cfg = dirl_sim.parse(["--set", "refine_search=true", "--set", "search_from=2"])
+    assert [v[0] for v in dirl_sim.ablations(cfg, 1)] == ["search1", "unc1"]
+    assert dirl_sim.ablations(cfg, 2) == []
+    every = dataclasses.replace(cfg, unc_every_iteration=True)
+    assert dirl_sim.ablations(every, 2) == [
+        ("unc2", "DIRL -unc iter 2", ["--no-uncertainty"], "search")
+    ]
+    assert dirl_sim.ablations(every, 1)[-1][3] == "gradient"
+    gradient = dirl_sim.parse(
+        ["--set", "unc_every_iteration=true", "--set", "compare_search=false"]
+    )
+    assert [v[0] for v in dirl_sim.ablations(gradient, 3)] == ["unc3"]
+    assert [v[0] for v in dirl_sim.ablations(gradient, 1)] == ["unc1"]
