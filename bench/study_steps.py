@@ -15,7 +15,8 @@ each kind at the mean of its steps run so far, a kind not run yet at its typical
 how this run's steps compare with theirs. A plain mean over the steps run (before
 2026-11-25) jumped with the order of the steps: the study of 2026-11-24 said 275 min at its 5th
 step, 60 at its 13th and 153 at its 14th; and it counted the laps copied for a same-weights
-evaluation as steps run.
+evaluation as steps run. A resumed study still counts its finished steps as left until its
+chains reach them, so its first ETAs are high.
 """
 
 from __future__ import annotations

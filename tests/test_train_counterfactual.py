@@ -109,6 +109,10 @@ def test_the_search_check_scores_the_move_refine_search_would_make():
                                  "true_gain": pytest.approx(1 / 3)}  # fmt: skip
     assert out["margin_2"]["moves"] == 0.0 and out["margin_2"]["right"] is None
     assert out["oracle_true_gain"] == pytest.approx((1.0 + 0.0 + 4.0) / 3)
+    # what it picks at margin 0, and what truly was best (start 1: nothing beats the plan)
+    third = pytest.approx(1 / 3)
+    assert out["chosen"] == {"plan": third, "lift": third, "brake": third}
+    assert out["truly_best"] == {"plan": third, "lift": third, "full": third}
     assert cf.search_check(imagined[:, :5], truth[:, :5], names[:5]) == {}
 
 
@@ -152,8 +156,12 @@ def test_the_check_scores_the_search_with_and_without_the_uncertainty_term():
     without = result["search_without_uncertainty"]["margin_0"]
     assert without["moves"] == 1.0 and without["right"] == 1.0
     assert without["true_gain"] == pytest.approx(h * 0.5)
+    assert result["search"]["chosen"] == {"plan": 1.0}
+    assert result["search_without_uncertainty"]["chosen"] == {"full": 1.0}
+    assert result["search"]["truly_best"] == {"full": 1.0}
     lines = "\n".join(cf.by_sequence_table(result))
     assert "refine_search without the uncertainty term" in lines
+    assert "At margin 0 it picks full 100%; truly best: full 100%." in lines
 
 
 @pytest.mark.timeout(300)  # an iteration and a simulator set: minutes on a loaded machine

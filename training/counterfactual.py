@@ -238,7 +238,12 @@ def search_check(imagined: np.ndarray, truth: np.ndarray, names: list[str]) -> d
         return {}
     cols = [names.index(name) for name in SEARCH_SEQUENCES]
     real = truth[:, cols]
-    result = {"oracle_true_gain": float((real[:, 0] - real.min(axis=1)).mean())}
+    result = {
+        "oracle_true_gain": float((real[:, 0] - real.min(axis=1)).mean()),
+        # what it picks (margin 0) and what would have been right, as shares of the starts
+        "chosen": shares(best_moves(torch.from_numpy(imagined[:, cols]), 0.0).numpy()),
+        "truly_best": shares(real.argmin(axis=1)),
+    }
     for margin in SEARCH_MARGINS:
         chosen = best_moves(torch.from_numpy(imagined[:, cols]), margin).numpy()
         gain = real[:, 0] - real[np.arange(len(real)), chosen]
@@ -249,6 +254,12 @@ def search_check(imagined: np.ndarray, truth: np.ndarray, names: list[str]) -> d
             "true_gain": float(gain.mean()),
         }
     return result
+
+
+def shares(columns: np.ndarray) -> dict[str, float]:
+    """(N,) columns of SEARCH_SEQUENCES → the share of starts at each name (those with any)."""
+    names, counts = np.unique(columns, return_counts=True)
+    return {SEARCH_SEQUENCES[int(c)]: n / len(columns) for c, n in zip(names, counts, strict=True)}
 
 
 def finite_or_none(value: float) -> float | None:
@@ -325,13 +336,18 @@ def search_lines(search: dict, variant: str = "") -> list[str]:
         return []
     parts = []
     for key, r in search.items():
-        if key.startswith("margin_"):
+        if key.startswith("margin_") and isinstance(r, dict):
             right = "—" if r["right"] is None else f"{r['right']:.2f}"
             parts.append(f"margin {key.removeprefix('margin_')}: moves {r['moves']:.2f}, "
                          f"right {right}, true gain {r['true_gain']:+.2f}")  # fmt: skip
     how = f" {variant}" if variant else ""
-    return ["", f"Search among the alternatives (refine_search{how}): {'; '.join(parts)} (oracle "
-            f"gain {search['oracle_true_gain']:+.2f} per start)."]  # fmt: skip
+    lines = ["", f"Search among the alternatives (refine_search{how}): {'; '.join(parts)} "
+             f"(oracle gain {search['oracle_true_gain']:+.2f} per start)."]  # fmt: skip
+    if "chosen" in search:  # absent in results from before it
+        picks = ", ".join(f"{k} {v:.0%}" for k, v in search["chosen"].items())
+        best = ", ".join(f"{k} {v:.0%}" for k, v in search["truly_best"].items())
+        lines[-1] += f" At margin 0 it picks {picks}; truly best: {best}."
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
