@@ -58,18 +58,19 @@ from pathlib import Path
 
 from bench.dirl_steps import (
     ROOT,
+    ablations,
     demonstrations,
     evaluate,
     frames_in,
     iterate_cmd,
     iteration_drives,
     plan,
+    run_settings,
     searches,
     select,
     top_up,
 )
 from bench.dirl_table import (
-    SEARCH_ROW,
     before_refinement,
     comparison,
     il_at_frames_of,
@@ -206,38 +207,6 @@ QUICK = dict(
     refine_steps=10, eval_seconds=10.0, refine_candidates_every=5, select_tracks=("200",),
     select_seconds=5.0, takeover_seconds=5.0, reimitate_steps=10,
 )  # fmt: skip
-
-
-def run_settings(cfg: StudyConfig, seed: int, every: int, iteration: int = 1) -> list[str]:
-    """The iterate.py arguments every run of a chain shares: its seed, the refinement
-    safeguards and method (iteration `iteration`'s), the check, and how often refinement keeps
-    a candidate (`every`)."""
-    return ["--seed", str(seed), "--set", f"refine_w_anchor={cfg.refine_w_anchor}",
-           "--set", f"refine_w_imitation={cfg.refine_w_imitation}",
-           "--set", f"refine_center_gradient={str(cfg.refine_center_gradient).lower()}",
-           "--set", "collision_prior_correction="
-                    f"{str(cfg.collision_prior_correction).lower()}",
-           "--set", f"refine_search={str(searches(cfg, iteration)).lower()}",
-           "--set", f"refine_search_margin={cfg.refine_search_margin}",
-           "--set", f"counterfactual_starts={cfg.counterfactual_starts}",
-           "--set", f"counterfactual_tracks={cfg.counterfactual_tracks}",
-           "--set", f"counterfactual_layout={cfg.layout}",
-           "--set", f"w_image={cfg.w_image}",
-           "--set", f"refine_candidates_every={every}"]  # fmt: skip
-
-
-def ablations(cfg: StudyConfig, k: int) -> list[tuple[str, str, list[str], str]]:
-    """σ 0 iteration k's variants of its refinement, each from the same world model and start
-    policy with one thing changed: (run name, row, iterate.py flags, refinement method). The
-    paper's -unc (no uncertainty term) at iteration 1, or every iteration with
-    unc_every_iteration; at iteration 1, with compare_search, search in place of the gradient."""
-    method = "search" if searches(cfg, k) else "gradient"
-    variants = []
-    if k == 1 and cfg.compare_search and not searches(cfg, 1):
-        variants.append(("search1", SEARCH_ROW, ["--set", "refine_search=true"], "search"))
-    if k == 1 or cfg.unc_every_iteration:
-        variants.append((f"unc{k}", f"DIRL -unc iter {k}", ["--no-uncertainty"], method))
-    return variants
 
 
 def chain(
