@@ -65,8 +65,8 @@ from bench.dirl_steps import (
     iterate_cmd,
     iteration_drives,
     plan,
+    refinement_method,
     run_settings,
-    searches,
     select,
     top_up,
 )
@@ -283,7 +283,7 @@ def chain(
              "--set", f"refine_steps={cfg.refine_steps}"), run / ".done")  # fmt: skip
         imitated = run / "checkpoints" / "imitation.pt" if reimitate else None
         policy = select(cfg, step, f"{tag}-dirl{k}", k, run, previous, data, imitated)
-        method = "search" if searches(cfg, k) else "gradient"
+        method = refinement_method(cfg, k)
         row(f"DIRL iter {k}", k, run, data, policy, refinement=method)
         if imitated and cfg.select_by_driving:
             row(before_refinement(k), k, run, data, policy, candidate="imitated")

@@ -70,6 +70,11 @@ def searches(cfg: StudyConfig, iteration: int) -> bool:
     return cfg.refine_search and iteration >= cfg.search_from
 
 
+def refinement_method(cfg: StudyConfig, iteration: int) -> str:
+    """ "search" or "gradient": how DIRL iteration `iteration` refines (a row's `refinement`)."""
+    return "search" if searches(cfg, iteration) else "gradient"
+
+
 def run_settings(cfg: StudyConfig, seed: int, every: int, iteration: int = 1) -> list[str]:
     """The iterate.py arguments every run of a chain shares: its seed, the refinement
     safeguards and method (iteration `iteration`'s), the check, and how often refinement keeps
@@ -93,7 +98,7 @@ def ablations(cfg: StudyConfig, k: int) -> list[tuple[str, str, list[str], str]]
     policy with one thing changed: (run name, row, iterate.py flags, refinement method). The
     paper's -unc (no uncertainty term) at iteration 1, or every iteration with
     unc_every_iteration; at iteration 1, with compare_search, search in place of the gradient."""
-    method = "search" if searches(cfg, k) else "gradient"
+    method = refinement_method(cfg, k)
     variants = []
     if k == 1 and cfg.compare_search and not searches(cfg, 1):
         variants.append(("search1", SEARCH_ROW, ["--set", "refine_search=true"], "search"))

@@ -296,9 +296,9 @@ def test_search_from_refines_later_iterations_by_search_and_earlier_by_the_gradi
     method = {k: dirl_sim.run_settings(cfg, 0, 100, iteration=k) for k in (1, 2, 3)}
     assert "refine_search=false" in method[1]
     assert "refine_search=true" in method[2] and "refine_search=true" in method[3]
-    assert [dirl_sim.searches(cfg, k) for k in (1, 2, 3)] == [False, True, True]
+    assert [dirl_steps.searches(cfg, k) for k in (1, 2, 3)] == [False, True, True]
     off = dirl_sim.parse(["--set", "search_from=2"])  # without refine_search: never
-    assert not any(dirl_sim.searches(off, k) for k in (1, 2, 3))
+    assert not any(dirl_steps.searches(off, k) for k in (1, 2, 3))
 
 
 def test_the_ablation_without_uncertainty_can_follow_every_iteration():

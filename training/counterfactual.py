@@ -238,14 +238,15 @@ def search_check(imagined: np.ndarray, truth: np.ndarray, names: list[str]) -> d
         return {}
     cols = [names.index(name) for name in SEARCH_SEQUENCES]
     real = truth[:, cols]
+    scores = torch.from_numpy(imagined[:, cols])
+    picks = {margin: best_moves(scores, margin).numpy() for margin in SEARCH_MARGINS}
     result = {
         "oracle_true_gain": float((real[:, 0] - real.min(axis=1)).mean()),
         # what it picks (margin 0) and what would have been right, as shares of the starts
-        "chosen": shares(best_moves(torch.from_numpy(imagined[:, cols]), 0.0).numpy()),
+        "chosen": shares(picks[0.0]),
         "truly_best": shares(real.argmin(axis=1)),
     }
-    for margin in SEARCH_MARGINS:
-        chosen = best_moves(torch.from_numpy(imagined[:, cols]), margin).numpy()
+    for margin, chosen in picks.items():
         gain = real[:, 0] - real[np.arange(len(real)), chosen]
         moved = chosen > 0
         result[f"margin_{margin:g}"] = {
