@@ -77,7 +77,7 @@ from bench.dirl_table import (
     plot,
     table,
 )
-from bench.study_steps import NotRun, StudyStep, run_chains
+from bench.study_steps import NotRun, StudyStep, finished_steps, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
 
@@ -306,6 +306,24 @@ def chain(
         previous = policy
 
 
+def run_study(cfg: StudyConfig, step: StudyStep) -> tuple[list[dict], list[str]]:
+    """Every step of the study through `step`: each noise's demonstrations, then the chains
+    (one per noise and seed) side by side. Returns the rows and the steps not finished
+    (--report)."""
+    missing = []
+    chains = [(0.0, seed, cfg.iterations) for seed in cfg.seeds if 0.0 in cfg.demo_noise]
+    chains += [(sigma, seed, cfg.robustness_iterations) for sigma in cfg.demo_noise if sigma
+               for seed in cfg.robustness_seeds]  # fmt: skip
+    for sigma in cfg.demo_noise:  # every chain needs them: first, each with all `jobs`
+        try:
+            demonstrations(cfg, step, sigma, cfg.train_tracks, "expert")
+            demonstrations(cfg, step, sigma, cfg.extra_tracks, "extra")
+        except NotRun as exc:
+            missing.append(str(exc))
+    rows, stopped = run_chains([functools.partial(chain, cfg, step, *c) for c in chains])
+    return rows, missing + stopped
+
+
 # ------------------------------------------------------------------------------- main
 def parse(argv: list[str] | None) -> StudyConfig:
     p = argparse.ArgumentParser(prog="python -m bench.dirl_sim", description=__doc__.split("\n")[0])
@@ -337,22 +355,17 @@ def main(argv: list[str] | None = None) -> int:
     if not cfg.report_only:  # a report must not relabel the run it reads
         (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
     started = time.monotonic()
-    step = StudyStep(out, plan(cfg), report_only=cfg.report_only,
-                     parallel=cfg.parallel, cwd=ROOT)  # fmt: skip
-    print(f"dirl_sim: profile {cfg.profile}, seeds {list(cfg.seeds)}, {step.planned} steps, "
-          f"{cfg.parallel} at once, out {out}", flush=True)  # fmt: skip
-    missing = []
-    chains = [(0.0, seed, cfg.iterations) for seed in cfg.seeds if 0.0 in cfg.demo_noise]
-    chains += [(sigma, seed, cfg.robustness_iterations) for sigma in cfg.demo_noise if sigma
-               for seed in cfg.robustness_seeds]  # fmt: skip
-    for sigma in cfg.demo_noise:  # every chain needs them: first, each with all `jobs`
-        try:
-            demonstrations(cfg, step, sigma, cfg.train_tracks, "expert")
-            demonstrations(cfg, step, sigma, cfg.extra_tracks, "extra")
-        except NotRun as exc:
-            missing.append(str(exc))
-    rows, stopped = run_chains([functools.partial(chain, cfg, step, *c) for c in chains])
-    missing += stopped
+    finished = (
+        None
+        if cfg.report_only
+        else finished_steps(out, plan(cfg), functools.partial(run_study, cfg))
+    )
+    step = StudyStep(out, plan(cfg), report_only=cfg.report_only, parallel=cfg.parallel,
+                     cwd=ROOT, finished_before=finished)  # fmt: skip
+    print(f"dirl_sim: profile {cfg.profile}, seeds {list(cfg.seeds)}, {step.planned} steps"
+          + (f" ({sum(finished.values())} finished before)" if finished else "")
+          + f", {cfg.parallel} at once, out {out}", flush=True)  # fmt: skip
+    rows, missing = run_study(cfg, step)
     report = (
         table(rows) + "\n\nPaired by seed (model − baseline, each seed's mean over the "
         "held-out placements; mean ± std over seeds):\n\n" + comparison(rows)

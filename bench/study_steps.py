@@ -15,12 +15,18 @@ each kind at the mean of its steps run so far, a kind not run yet at its typical
 how this run's steps compare with theirs. A plain mean over the steps run (before
 2026-11-25) jumped with the order of the steps: the study of 2026-11-24 said 275 min at its 5th
 step, 60 at its 13th and 153 at its 14th; and it counted the laps copied for a same-weights
-evaluation as steps run. A resumed study still counts its finished steps as left until its
-chains reach them, so its first ETAs are high.
+evaluation as steps run. A resumed study first walks its chains without running anything
+(`finished_steps`, what --report does) to count the steps already finished, by kind: they
+take no time when the chains reach them, so they are not in the ETA (before, a resumed study
+counted them as left until its chains reached them). Still inexact: a step resumed from its
+own checkpoint reports only its remaining time, and time a study stood paused (SIGSTOP)
+counts in the step it paused.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import re
 import subprocess
 import threading
@@ -75,12 +81,16 @@ class StudyStep:
         report_only: bool = False,
         parallel: int = 1,
         cwd: Path | None = None,
+        finished_before: Mapping[str, int] | None = None,
     ) -> None:
         self.logs = Path(out) / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
         self.plan = Counter(plan) if isinstance(plan, Mapping) else Counter({ANY: plan})
         self.planned, self.done = sum(self.plan.values()), 0
         self.done_by_kind: Counter[str] = Counter()
+        # Steps finished by an earlier invocation (finished_steps), and those of them reached.
+        self.finished_before: Counter[str] = Counter(finished_before or {})
+        self.found_done: Counter[str] = Counter()
         self.seconds: defaultdict[str, list[float]] = defaultdict(list)  # steps run, by kind
         self.report_only, self.cwd, self.parallel = report_only, cwd, max(1, parallel)
         self.slots = threading.BoundedSemaphore(self.parallel)
@@ -95,6 +105,8 @@ class StudyStep:
         with self.lock:
             self.done += 1
             self.done_by_kind[self.kind(name)] += 1
+            if marker.exists():
+                self.found_done[self.kind(name)] += 1
         if marker.exists():
             return
         if self.report_only:
@@ -126,7 +138,8 @@ class StudyStep:
         self._progress(name, why)
 
     def eta_s(self) -> float:
-        """Wall seconds the planned steps not yet counted will take, `parallel` at a time."""
+        """Wall seconds the planned steps not yet counted will take, `parallel` at a time; steps
+        an earlier invocation finished and the chains have not reached yet take none."""
         with self.lock:
             mean = {k: sum(v) / len(v) for k, v in self.seconds.items() if v}
             typical = [(TYPICAL_S[k], m) for k, m in mean.items() if k in TYPICAL_S]
@@ -136,13 +149,25 @@ class StudyStep:
             left = 0.0
             for kind, n in self.plan.items():
                 each = mean.get(kind, TYPICAL_S[kind] * scale if kind in TYPICAL_S else other)
-                left += max(n - self.done_by_kind[kind], 0) * each
+                ahead = self.finished_before[kind] - self.found_done[kind]  # finished, not reached
+                left += max(n - self.done_by_kind[kind] - ahead, 0) * each
         return left / self.parallel
 
     def _progress(self, name: str, what: str) -> None:
         eta = self.eta_s() / 60
         with self.lock:
             print(f"  [{self.done}/{self.planned}] {name}: {what} (ETA ~{eta:.0f} min)", flush=True)
+
+
+def finished_steps(out: Path, plan: Mapping[str, int] | int,
+                   run: Callable[[StudyStep], object]) -> Counter[str]:  # fmt: skip
+    """The steps of a study (`run` walks them all with the given StudyStep) that an earlier
+    invocation finished, by kind: `run` is walked once as --report walks it, nothing run and
+    its printing swallowed, so a resumed study's ETA leaves them out."""
+    probe = StudyStep(out, plan, report_only=True)
+    with contextlib.redirect_stdout(io.StringIO()):
+        run(probe)
+    return probe.found_done
 
 
 def run_chains(chains: Sequence[Callable[[list], None]]) -> tuple[list, list[str]]:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.study_steps import StudyStep, run_chains
+from bench.study_steps import TYPICAL_S, StudyStep, finished_steps, run_chains
 
 RECORD = (
     "import json, sys, time; start = time.monotonic(); time.sleep(float(sys.argv[2])); "
@@ -104,3 +104,24 @@ def test_a_plain_count_plans_one_kind_of_step(tmp_path, capsys):
     run_chains([functools.partial(chain, step, tmp_path, n, 2) for n in "ab"])
     assert step.done_by_kind == {"step": 4} and len(step.seconds["step"]) == 4
     assert step.eta_s() == 0.0 and "[4/4]" in capsys.readouterr().out
+
+
+def test_a_resumed_study_leaves_its_finished_steps_out_of_the_eta(tmp_path):
+    """An earlier invocation finished both evaluations: the walk finds them without running
+    anything, and the ETA counts only the drives, also once the chains reach the evaluations."""
+    (tmp_path / "markers").mkdir()
+    for name in ("eval-0", "eval-1"):
+        (tmp_path / "markers" / name).touch()
+    plan = {"eval": 2, "drive": 2}
+
+    def walk(step: StudyStep) -> None:
+        run_chains([functools.partial(chain, step, tmp_path, n, 2) for n in ("eval", "drive")])
+
+    finished = finished_steps(tmp_path, plan, walk)
+    assert finished == {"eval": 2} and intervals(tmp_path) == [], "found, nothing run"
+    fresh = StudyStep(tmp_path, plan, parallel=1)
+    assert fresh.eta_s() == pytest.approx(2 * TYPICAL_S["eval"] + 2 * TYPICAL_S["drive"])
+    resumed = StudyStep(tmp_path, plan, parallel=1, finished_before=finished)
+    assert resumed.eta_s() == pytest.approx(2 * TYPICAL_S["drive"])
+    walk(resumed)  # the drives run; the evaluations are reached, not counted twice
+    assert len(intervals(tmp_path)) == 2 and resumed.eta_s() == 0.0
