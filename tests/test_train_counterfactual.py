@@ -159,7 +159,14 @@ def test_the_check_scores_the_search_with_and_without_the_uncertainty_term():
     assert result["search"]["chosen"] == {"plan": 1.0}
     assert result["search_without_uncertainty"]["chosen"] == {"full": 1.0}
     assert result["search"]["truly_best"] == {"full": 1.0}
+    # Against the plan, full throttle gains 0.5 × 3 steps of speed in imagination and in truth,
+    # and loses 5 × 3 steps of uncertainty: the term the paper's objective stays on the plan for.
+    full = result["by_sequence"]["full"]["vs_plan"]
+    assert full == pytest.approx({"speed": -1.5, "collision": 0.0, "uncertainty": 15.0,
+                                  "true": -1.5})  # fmt: skip
+    assert result["by_sequence"]["lift"]["vs_plan"]["uncertainty"] == 0.0
     lines = "\n".join(cf.by_sequence_table(result))
+    assert "| full |" in lines and "-1.50 / +0.00 / +15.00 | -1.50 |" in lines
     assert "refine_search without the uncertainty term" in lines
     assert "At margin 0 it picks full 100%; truly best: full 100%." in lines
 

@@ -151,6 +151,13 @@ def score(world_model, data: dict, cfg) -> dict:
                 "imagined_risk": float(risk[:, j].mean()),
                 # null for the plan itself and where the truth ties (JSON has no NaN)
                 "orders_like_truth": finite_or_none(orders_like_truth(objective, truth, j)),
+                # Mean over the starts of each imagined term (weighted, as in the objective)
+                # minus the plan's, and the same of the true objective (lower is better): which
+                # term makes a sequence look worse or better than the plan than it truly is.
+                "vs_plan": {
+                    **{term: float((v[:, j] - v[:, 0]).mean()) for term, v in terms.items()},
+                    "true": float((truth[:, j] - truth[:, 0]).mean()),
+                },
             }
             for j, name in enumerate(data["meta"].get("sequences", ()))
         },
@@ -307,14 +314,18 @@ def by_sequence_table(result: dict) -> list[str]:
     if not rows:
         return []
     lines = ["| sequence | true Σ speed | imagined Σ speed | collided | imagined risk | "
-             "ordered against the plan as in truth |",
-             "|---|---|---|---|---|---|"]  # fmt: skip
+             "ordered against the plan as in truth | − plan: imagined speed / collision / "
+             "uncertainty terms | − plan: true objective |",
+             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for name, r in rows.items():
         order = r.get("orders_like_truth")  # absent in results from before it
+        d = r.get("vs_plan")  # absent in results from before it
+        parts = ("— | —" if d is None else f"{d['speed']:+.2f} / {d['collision']:+.2f} / "
+                 f"{d['uncertainty']:+.2f} | {d['true']:+.2f}")  # fmt: skip
         lines.append(
             f"| {name} | {r['true_distance']:.2f} | {r['imagined_distance']:.2f} | "
             f"{r['true_collision']:.2f} | {r['imagined_risk']:.2f} | "
-            f"{'—' if order is None else f'{order:.2f}'} |"
+            f"{'—' if order is None else f'{order:.2f}'} | {parts} |"
         )
     grads = result.get("gradient_agreement") or {}  # absent in results from before it
     if grads:
