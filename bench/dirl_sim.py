@@ -1,6 +1,6 @@
 """The paper's simulation study on carrt's simulator: imitation learning against DIRL, at scale.
 
-    python -m bench.dirl_sim                        # the study (make study; > 137 min, 2 cores)
+    python -m bench.dirl_sim                        # the study (make study; ~9 h, 2 cores)
     python -m bench.dirl_sim --quick                # every step, tiny profile, minutes
     python -m bench.dirl_sim --set seeds=0,1,2 --set iterations=3
 
@@ -12,7 +12,7 @@ Top to bottom, every step one of the project's own commands (logged under OUT/lo
    every expert command (the paper's imperfect demonstrator). A second pool of demonstrations on
    other placements gives imitation as many frames as DIRL's iterations add.
 2. IL: iterate.py with imitation only.
-3. DIRL iteration k: the previous policy drives the training placements alone
+3. DIRL iteration k: the previous policy drives placements of its own alone (iteration_tracks)
    (`sim_data drives`: auto-reset after every collision, each crash labelled: the world model's
    collision examples, which the demonstrations hardly hold), then again with the expert
    playing the person who takes over before a crash (`sim_data interventions`, with the
@@ -29,8 +29,10 @@ Top to bottom, every step one of the project's own commands (logged under OUT/lo
    imitation made is also evaluated as its own row ("before refinement"): what refinement adds
    beyond the take-overs.
    takeover_seconds=0 reimitate_steps=0 is the paper's iteration (imitation once, drives
-   without a person). DIRL -unc: iteration 1's world model and imitated policy, refinement
-   without the uncertainty term, chosen the same way.
+   without a person). Iteration 1 is refined by the world model's gradient, later ones by
+   search in its imagination (refine_search, search_from). DIRL -unc: each σ 0 iteration's
+   world model and imitated policy, refinement without the uncertainty term, chosen the same
+   way; "DIRL search iter 1": iteration 1 refined by search instead.
 4. IL at equal frames, once per DIRL iteration k: imitation on the demonstrations plus as many
    frames from the second pool as iterations 1..k's drives added, so every DIRL row is compared
    with imitation on (at least) as many frames as it had.
@@ -84,13 +86,14 @@ from carrt.settings import apply_sets
 
 @dataclass
 class StudyConfig:
-    """Every number of the study. The defaults are its current design; each README table gives
-    the `--set`s it was run with."""
+    """Every number of the study. The defaults are its current design, the settings of the
+    runs of 2026-11-25 (README: "Search from iteration 2" and the noisy demonstrations after it);
+    each README table gives the `--set`s it was run with."""
 
     out: str = "bench/results/dirl_sim"
     profile: str = "cpu"  # model sizes (training/profiles.py)
     seeds: tuple[int, ...] = (0, 1, 2)  # training seeds: model init, batch order, DIRL drives
-    robustness_seeds: tuple[int, ...] = (0,)  # seeds of the σ > 0 chains
+    robustness_seeds: tuple[int, ...] = (0, 1, 2)  # seeds of the σ > 0 chains
     layout: str = "hard"  # 8 obstacles
     train_tracks: str = "1000-1039"  # demonstrations and DIRL drives
     extra_tracks: str = "1040-1099"  # the second demonstration pool (IL at equal frames)
@@ -103,12 +106,12 @@ class StudyConfig:
     demo_noise: tuple[float, ...] = (0.0, 0.5, 1.0)  # σ on the expert's commands (robustness)
     iterations: int = 3  # DIRL iterations (σ = 0)
     robustness_iterations: int = 1  # DIRL iterations for σ > 0
-    drive_seconds: float = 15.0  # simulated s per training placement per DIRL iteration
+    drive_seconds: float = 40.0  # simulated s per placement per DIRL iteration
     # Where iteration k drives (its exploration drives and its take-overs): entry k−1, e.g.
     # 1040-1053,1054-1067 (the placements IL at equal frames takes its extra demonstrations
     # from first: the person moved the buckets, and both arms see the new placements).
     # Empty: train_tracks, the same placements as the demonstrations every iteration.
-    iteration_tracks: tuple[str, ...] = ()
+    iteration_tracks: tuple[str, ...] = ("1040-1054", "1055-1069", "1070-1084")
     # Noise on the policy's commands in those drives (noise.during_auto): without it steering
     # is a function of the place and the world model learns its collision risk backwards
     # (docs/architecture.md, "what the world model can learn"); the paper's ±0.3 half the time
@@ -122,7 +125,7 @@ class StudyConfig:
     # (`sim_data interventions`, the same σ as the demonstrations): the override every real-car
     # drive has, whose commands label states the policy itself reached. 0: none (the paper's
     # drives, e-stop = collision, and the studies before 2026-11-24's sixth run).
-    takeover_seconds: float = 8.0
+    takeover_seconds: float = 21.0
     # A DIRL iteration first learns by imitation again, from the previous policy, on every
     # labelled frame (demonstrations + take-overs): iterate.py's `reimitate`, this many steps at
     # this learning rate (a fine-tune of the previous policy; IL trains 3000 steps at 1e-3).
@@ -152,18 +155,19 @@ class StudyConfig:
     # Refinement by search in the world model's imagination instead of its gradient
     # (training/refine_search.py): μ pulled toward the imagined-best of fixed alternatives where
     # it beats the plan by the margin. False: the paper's gradient.
-    refine_search: bool = False
+    refine_search: bool = True
     refine_search_margin: float = 0.0
     # With refine_search: the first DIRL iteration refined by search, the ones before it by the
     # gradient (2: iteration 1 as the gradient studies ran it, search once the world model has
     # seen the policy's own drives twice; the check's ρ rose from 0.3 to 0.5-0.6 by then).
-    search_from: int = 1
-    # With refine_search false: a row "DIRL search iter 1" at σ 0, iteration 1's world model
-    # and start policy refined by search, selected and evaluated like the others.
+    search_from: int = 2
+    # Where iteration 1 is the gradient's (refine_search false, or search_from ≥ 2): a row "DIRL
+    # search iter 1" at σ 0, iteration 1's world model and start policy refined by search,
+    # selected and evaluated like the others.
     compare_search: bool = True
     # DIRL -unc (the paper's ablation) at every σ 0 iteration, each from that iteration's world
     # model and start policy; False: at iteration 1 only, as the studies before 2026-11-25 ran it.
-    unc_every_iteration: bool = False
+    unc_every_iteration: bool = True
     # The third safeguard: refinement keeps a candidate every `refine_candidates_every` steps and
     # the policy it started from is one too; each is driven on validation placements and the best
     # is the iteration's policy (training/select_by_driving.py). False: the last step's policy.
@@ -205,7 +209,7 @@ QUICK = dict(
     counterfactual_starts=2, expert_episodes=2, demo_noise=(0.0, 0.5), iterations=2,
     drive_seconds=5.0, imitation_steps=30, world_model_steps=30, world_model_steps_next=10,
     refine_steps=10, eval_seconds=10.0, refine_candidates_every=5, select_tracks=("200",),
-    select_seconds=5.0, takeover_seconds=5.0, reimitate_steps=10,
+    select_seconds=5.0, takeover_seconds=5.0, reimitate_steps=10, iteration_tracks=(),
 )  # fmt: skip
 
 

@@ -57,21 +57,37 @@ def _total(cfg) -> int:
     return sum(dirl_steps.plan(cfg).values())
 
 
+# The design before 2026-11-25's defaults: one σ > 0 seed, -unc at iteration 1 only, gradient
+# refinement (so a "DIRL search iter 1" row); the plan tests below count from it.
+GRADIENT_DESIGN = ["--set", "robustness_seeds=0", "--set", "unc_every_iteration=false",
+                   "--set", "refine_search=false", "--set", "search_from=1"]  # fmt: skip
+
+
+def test_the_default_plan_is_the_runs_of_2026_11_25():
+    """σ 0: 3 seeds × (IL 2 + 3 iterations × 8 + -unc at each iteration 3 × 3 + the search row
+    3) = 3 × 38; σ 0.5 and 1.0: 3 seeds each × (IL 2 + one iteration 8); demos 2 per noise. The
+    σ 1.0 run of that day had its 32 steps (2 + 3 × 10)."""
+    cfg = dirl_sim.parse([])
+    assert cfg.refine_search and cfg.search_from == 2 and cfg.unc_every_iteration
+    assert _total(cfg) == 6 + 3 * 38 + 2 * 3 * 10
+    assert _total(dataclasses.replace(cfg, demo_noise=(1.0,))) == 32
+
+
 def test_the_plan_counts_every_step_the_study_runs():
-    cfg = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
-                          "iterations=2", "--set", "robustness_iterations=1"])  # fmt: skip
+    cfg = dirl_sim.parse([*GRADIENT_DESIGN, "--set", "seeds=0,1", "--set", "demo_noise=0,1",
+                          "--set", "iterations=2", "--set", "robustness_iterations=1"])  # fmt: skip
     # demos 2×2; σ 0 per seed: IL 2 + 2 iterations × (drive, take-overs, train, select, eval,
     # eval before refinement + IL at its frames train, eval) + -unc 3 (train, select, eval)
     # + search 3 = 24; σ 1: IL 2 + 1 iteration × 8 = 10
     assert _total(cfg) == 4 + 2 * 24 + 10
     # without the search row (or with search as the method itself): -unc alone
     for no_row in ("compare_search=false", "refine_search=true"):
-        alone = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
-                                "iterations=2", "--set", no_row])  # fmt: skip
+        alone = dirl_sim.parse([*GRADIENT_DESIGN, "--set", "seeds=0,1", "--set", "demo_noise=0,1",
+                                "--set", "iterations=2", "--set", no_row])  # fmt: skip
         assert _total(alone) == 4 + 2 * 21 + 10
     # search from iteration 2: iteration 1 by the gradient, so its search row is run
-    later = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
-                            "iterations=2", "--set", "refine_search=true", "--set",
+    later = dirl_sim.parse([*GRADIENT_DESIGN, "--set", "seeds=0,1", "--set", "demo_noise=0,1",
+                            "--set", "iterations=2", "--set", "refine_search=true", "--set",
                             "search_from=2"])  # fmt: skip
     assert _total(later) == _total(cfg)
     # without the selection by driving, no selection and no before-refinement row
@@ -85,8 +101,8 @@ def test_the_plan_counts_every_step_the_study_runs():
 def test_the_plan_counts_steps_by_the_kind_their_names_say():
     """The ETA weighs each kind by its time: the plan's kinds are the ones step_kind reads from
     the names the study gives its steps, and each has a typical time."""
-    cfg = dirl_sim.parse(["--set", "seeds=0,1", "--set", "demo_noise=0,1", "--set",
-                          "iterations=2", "--set", "robustness_iterations=1"])  # fmt: skip
+    cfg = dirl_sim.parse([*GRADIENT_DESIGN, "--set", "seeds=0,1", "--set", "demo_noise=0,1",
+                          "--set", "iterations=2", "--set", "robustness_iterations=1"])  # fmt: skip
     kinds = dirl_steps.plan(cfg)
     # 2 σ0 chains × 2 iterations + 1 σ1 chain × 1; iteration 1 trains its world model anew
     assert kinds["train dirl1"] == 3 and kinds["train dirl"] == 2
@@ -126,6 +142,7 @@ def _flag(command: list[str], flag: str) -> str:
 
 def test_an_iteration_drives_alone_then_with_the_noisy_person_taking_over(tmp_path):
     cfg = dirl_sim.parse(["--set", f"out={tmp_path}", "--set", "takeover_seconds=8"])
+    cfg = dataclasses.replace(cfg, iteration_tracks=())  # every iteration on the training ones
     steps = _Steps()
     data = dirl_steps.iteration_drives(cfg, steps, "noise1-seed0", 1.0, 2, tmp_path / "dirl1")
     assert [d.name for d in data] == ["drives-noise1-seed0-iter2", "takeovers-noise1-seed0-iter2"]
@@ -279,7 +296,8 @@ def test_every_run_gets_the_refinement_method_and_its_safeguards():
     from training.config import IterateConfig
 
     cfg = dirl_sim.parse(["--set", "refine_search=true", "--set", "refine_search_margin=0.5",
-                          "--set", "refine_center_gradient=false"])  # fmt: skip
+                          "--set", "refine_center_gradient=false",
+                          "--set", "search_from=1"])  # fmt: skip
     args = dirl_sim.run_settings(cfg, 2, 100)
     assert args[:2] == ["--seed", "2"]
     sets = [args[i + 1] for i, a in enumerate(args) if a == "--set"]
@@ -297,7 +315,7 @@ def test_search_from_refines_later_iterations_by_search_and_earlier_by_the_gradi
     assert "refine_search=false" in method[1]
     assert "refine_search=true" in method[2] and "refine_search=true" in method[3]
     assert [dirl_steps.searches(cfg, k) for k in (1, 2, 3)] == [False, True, True]
-    off = dirl_sim.parse(["--set", "search_from=2"])  # without refine_search: never
+    off = dirl_sim.parse(["--set", "refine_search=false", "--set", "search_from=2"])  # never
     assert not any(dirl_steps.searches(off, k) for k in (1, 2, 3))
 
 
@@ -305,7 +323,8 @@ def test_the_ablation_without_uncertainty_can_follow_every_iteration():
     """-unc at iteration 1 only (the studies before 2026-11-25), or at every iteration with that
     iteration's refinement method; the search row at iteration 1 only, and only where iteration
     1 refines by the gradient."""
-    cfg = dirl_sim.parse(["--set", "refine_search=true", "--set", "search_from=2"])
+    cfg = dirl_sim.parse(["--set", "refine_search=true", "--set", "search_from=2", "--set",
+                          "unc_every_iteration=false"])  # fmt: skip
     assert [v[0] for v in dirl_sim.ablations(cfg, 1)] == ["search1", "unc1"]
     assert dirl_sim.ablations(cfg, 2) == []
     every = dataclasses.replace(cfg, unc_every_iteration=True)
