@@ -359,12 +359,11 @@ def main(argv: list[str] | None = None) -> int:
     if not cfg.report_only:  # a report must not relabel the run it reads
         (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
     started = time.monotonic()
+    steps = plan(cfg)
     finished = (
-        None
-        if cfg.report_only
-        else finished_steps(out, plan(cfg), functools.partial(run_study, cfg))
+        None if cfg.report_only else finished_steps(out, steps, functools.partial(run_study, cfg))
     )
-    step = StudyStep(out, plan(cfg), report_only=cfg.report_only, parallel=cfg.parallel,
+    step = StudyStep(out, steps, report_only=cfg.report_only, parallel=cfg.parallel,
                      cwd=ROOT, finished_before=finished)  # fmt: skip
     print(f"dirl_sim: profile {cfg.profile}, seeds {list(cfg.seeds)}, {step.planned} steps"
           + (f" ({sum(finished.values())} finished before)" if finished else "")

@@ -102,12 +102,13 @@ class StudyStep:
 
     def __call__(self, name: str, argv: list[str], marker: Path) -> None:
         """Run unless `marker` exists; touch it when the command succeeded."""
+        finished = marker.exists()
         with self.lock:
             self.done += 1
             self.done_by_kind[self.kind(name)] += 1
-            if marker.exists():
+            if finished:
                 self.found_done[self.kind(name)] += 1
-        if marker.exists():
+        if finished:
             return
         if self.report_only:
             raise NotRun(name)
