@@ -65,7 +65,7 @@ def search_targets(world_model, image, speed, plan, score, clip: float, correct:
     n, k = seqs.shape[:2]  # each start frame encoded once for its k sequences (imagine)
     imagined = world_model.imagine(image, speed, seqs.flatten(0, 1), clip, correct)
     chosen = best_moves(score(imagined).view(n, k), margin)
-    return seqs[torch.arange(n), chosen], chosen
+    return seqs[torch.arange(n, device=seqs.device), chosen], chosen
 
 
 def search_loss(mu: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:

@@ -26,9 +26,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
-import multiprocessing
 import sys
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +37,7 @@ from carrt.arg_types import finite_non_negative, finite_positive
 from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import EXIT_USAGE, UserError
 from carrt.eval_cmd import parse_int_list
+from carrt.sim.pool import worker_pool
 
 # Held out, never recorded for training: `carrt eval`'s default 100-104, and 105-124, which the
 # study adds since 5 placements alone judged DIRL against IL by their own noise.
@@ -143,17 +143,15 @@ def run_jobs(jobs: list[Job], jobs_at_once: int, what: str) -> None:
     todo = [job for job in jobs if not job.marker.exists()]
     if not todo:
         return
-    # An executor, not multiprocessing.Pool: a worker that dies mid-run (a crash in a native
-    # library) breaks the executor with an error instead of leaving the call waiting forever.
-    # A fresh executor per chunk of TASKS_PER_WORKER tasks per worker bounds what a long-lived
+    # carrt/sim/pool.py: an executor whose workers use one math thread each. A fresh executor
+    # per chunk of TASKS_PER_WORKER tasks per worker bounds what a long-lived
     # worker accumulates; not max_tasks_per_child, with which CPython 3.11/3.12 hangs once
     # every worker has retired (CPython gh-115634: the call waited forever after 100 placements).
-    context = multiprocessing.get_context("forkserver")
     failed: list[tuple[Job, int]] = []
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=what, unit="placement")
     chunk = jobs_at_once * TASKS_PER_WORKER
     for first in range(0, len(todo), chunk):
-        with ProcessPoolExecutor(jobs_at_once, mp_context=context) as pool:
+        with worker_pool(jobs_at_once, "forkserver") as pool:
             futures = [pool.submit(_run_job, job) for job in todo[first : first + chunk]]
             for future in as_completed(futures):
                 job, code = future.result()

@@ -18,10 +18,10 @@ from __future__ import annotations
 import contextlib
 import io
 import math
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
+
+from carrt.sim.pool import worker_pool
 
 METRICS = ("completion_ratio", "collisions_per_min", "average_speed", "laps")
 
@@ -39,7 +39,7 @@ def evaluate(
     """Drive `model_path` (None: the scripted expert) on every placement × seed.
 
     Returns {"config": ..., "runs": [per-run dict], "aggregate": {metric: {"mean", "std"}}}.
-    jobs > 1 runs placements in that many 'spawn' processes (each run is single-threaded).
+    jobs > 1 runs placements in that many 'spawn' processes, one math thread each (pool.py).
     """
     tasks = [
         (None if model_path is None else str(model_path), layout, int(t), float(seconds), int(s),
@@ -48,10 +48,7 @@ def evaluate(
         for s in seeds
     ]  # fmt: skip
     if jobs > 1 and len(tasks) > 1:
-        # An executor, not multiprocessing.Pool: a worker that dies mid-run breaks it with an
-        # error (BrokenProcessPool) instead of leaving the evaluation waiting forever.
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(min(jobs, len(tasks)), mp_context=context) as pool:
+        with worker_pool(min(jobs, len(tasks)), "spawn") as pool:
             runs = list(pool.map(run_one, *zip(*tasks, strict=True)))
     else:
         runs = [run_one(*task) for task in tasks]
