@@ -133,6 +133,42 @@ def test_gradients_reach_the_actions_through_the_world_model():
         assert g0[:, 1:].abs().sum() == 0 and g0[:, 0].abs().sum() > 0
 
 
+def cudnn_during_gru(world, image, speed, actions, grad: bool) -> bool:
+    """Whether cuDNN was enabled while the world model's GRUs ran."""
+    seen = []
+    hook = world.gru[0].register_forward_pre_hook(
+        lambda *_: seen.append(torch.backends.cudnn.enabled)
+    )
+    with torch.set_grad_enabled(grad):
+        world(image, speed, actions)
+    hook.remove()
+    return seen[0]
+
+
+def test_a_frozen_world_model_differentiated_runs_its_grus_without_cudnn():
+    # cuDNN has no RNN backward in eval mode (the first GPU run's refinement failed on it)
+    world = WorldModel(TINY)
+    image, speed, actions = batch(2, TINY)
+    assert torch.backends.cudnn.enabled
+    assert cudnn_during_gru(world, image, speed, actions, grad=True)  # training: cuDNN's
+    world.freeze()
+    assert cudnn_during_gru(world, image, speed, actions, grad=False)  # imagining: cuDNN's
+    assert not cudnn_during_gru(world, image, speed, actions, grad=True)  # refining: not
+    assert torch.backends.cudnn.enabled  # and back afterwards
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (cuDNN)")
+def test_refinement_backward_through_a_frozen_world_model_on_cuda():
+    world, policy = WorldModel(TINY).cuda(), PolicyNet(TINY).cuda()
+    world.freeze()
+    image, speed, _ = batch(4, TINY)
+    image, speed = image.cuda(), speed.cuda()
+    actions = policy.sample(image, speed, torch.randn(4, TINY.horizon, 2, device="cuda"))
+    world(image, speed, actions).speed.gamma.mean().backward()
+    assert policy.head[-1].weight.grad is not None
+    assert torch.isfinite(policy.head[-1].weight.grad).all()
+
+
 def snapshot(module):
     return {k: v.detach().clone() for k, v in module.state_dict().items()}
 

@@ -7,6 +7,7 @@ exported into the ONNX graph, and no caller can normalise twice or forget to.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 from collections.abc import Sequence
@@ -268,6 +269,16 @@ def _mlp(cin: int, cout: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(cin, cin), nn.ReLU(), nn.Linear(cin, cout))
 
 
+def _rnn_backward_outside_training(training: bool):
+    """cuDNN has no RNN backward outside training mode, and refinement differentiates the
+    frozen world model (eval mode: its BatchNorm statistics must not move) with respect to the
+    actions; there the GRUs run on PyTorch's own kernels (found on the first GPU run, 2026-11-25:
+    "cudnn RNN backward can only be called in training mode"). Elsewhere: unchanged."""
+    if training or not torch.is_grad_enabled():
+        return contextlib.nullcontext()
+    return torch.backends.cudnn.flags(enabled=False)
+
+
 class WorldModel(_Normalised):
     """Reveries-net: (image_t, speed_t, a_t..a_{t+H−1}) → images, speeds, collisions at
     t+1..t+H, each with evidential uncertainty.
@@ -316,10 +327,11 @@ class WorldModel(_Normalised):
         context = context.repeat_interleave(k, dim=0) if k > 1 else context
         x = self.action_net(actions.to(torch.float32))
         states: list[Tensor] = []
-        for init, gru in zip(self.init_state, self.gru, strict=True):
-            h0 = torch.tanh(init(context)).unsqueeze(0)
-            x, _ = gru(x, h0)
-            states.append(x)
+        with _rnn_backward_outside_training(self.training):
+            for init, gru in zip(self.init_state, self.gru, strict=True):
+                h0 = torch.tanh(init(context)).unsqueeze(0)
+                x, _ = gru(x, h0)
+                states.append(x)
         n, h = x.shape[0], x.shape[1]
         img = self.image_head(states[0].reshape(n * h, -1))
         img = img.view(n, h, *img.shape[1:])  # (N, H, 4, 3, P, P)
