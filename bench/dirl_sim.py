@@ -54,6 +54,7 @@ import argparse
 import dataclasses
 import functools
 import json
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -82,6 +83,11 @@ from bench.dirl_table import (
 from bench.study_steps import NotRun, StudyStep, finished_steps, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity, not the machine's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 @dataclass
@@ -184,8 +190,10 @@ class StudyConfig:
     select_margin_z: float = 2.0
     select_seconds: float = 30.0  # simulated s per validation placement and candidate
     eval_seconds: float = 60.0  # simulated seconds per held-out placement (a lap is ~7 s)
-    threads: int = 2  # torch threads in all
-    jobs: int = 2  # simulator processes in all
+    # 0: every core this process may use (2 here; 16 on the GPU machine of 2026-11-25, where
+    # the defaults of 2 would have left 14 idle)
+    threads: int = 0  # torch threads in all
+    jobs: int = 0  # simulator processes in all
     # Steps of different chains run at once, each with threads/parallel torch threads and
     # jobs/parallel simulator processes (bench/study_steps.py; measured on the full study: two
     # 1-thread imitation runs side by side do 1.10× the work of one 2-thread run, two 1-process
@@ -193,11 +201,17 @@ class StudyConfig:
     parallel: int = 2
     report_only: bool = False  # --report: tables from the finished steps, nothing run
 
+    def all_threads(self) -> int:
+        return self.threads or usable_cores()
+
+    def all_jobs(self) -> int:
+        return self.jobs or usable_cores()
+
     def step_threads(self) -> int:
-        return max(1, self.threads // max(1, self.parallel))
+        return max(1, self.all_threads() // max(1, self.parallel))
 
     def step_jobs(self) -> int:
-        return max(1, self.jobs // max(1, self.parallel))
+        return max(1, self.all_jobs() // max(1, self.parallel))
 
     def iterate_overrides(self) -> list[str]:
         return [f"threads={self.step_threads()}", "progress=false", "figures=false"]
@@ -347,6 +361,9 @@ def parse(argv: list[str] | None) -> StudyConfig:
     longest = max(cfg.iterations, cfg.robustness_iterations)
     if cfg.iteration_tracks and len(cfg.iteration_tracks) < longest:
         p.error(f"iteration_tracks: {len(cfg.iteration_tracks)} entries for {longest} iterations")
+    for name in ("threads", "jobs", "parallel"):
+        if getattr(cfg, name) < (1 if name == "parallel" else 0):
+            p.error(f"{name}: {getattr(cfg, name)} (threads and jobs: 0 for every core, or more)")
     if len(cfg.select_tracks) != 1 and len(cfg.select_tracks) < longest:
         p.error(f"select_tracks: {len(cfg.select_tracks)} entries for {longest} iterations")
     return dataclasses.replace(cfg, report_only=a.report)
@@ -367,7 +384,8 @@ def main(argv: list[str] | None = None) -> int:
                      cwd=ROOT, finished_before=finished)  # fmt: skip
     print(f"dirl_sim: profile {cfg.profile}, seeds {list(cfg.seeds)}, {step.planned} steps"
           + (f" ({sum(finished.values())} finished before)" if finished else "")
-          + f", {cfg.parallel} at once, out {out}", flush=True)  # fmt: skip
+          + f", {cfg.parallel} at once ({cfg.step_threads()} torch threads and"
+          + f" {cfg.step_jobs()} simulator processes each), out {out}", flush=True)  # fmt: skip
     rows, missing = run_study(cfg, step)
     report = (
         table(rows) + "\n\nPaired by seed (model − baseline, each seed's mean over the "

@@ -141,7 +141,7 @@ def demonstrations(cfg: StudyConfig, step: StudyStep, sigma: float, tracks: str,
     data = Path(cfg.out) / "data" / f"{tag}-noise{sigma:g}"
     step(f"{tag}-noise{sigma:g}", py("-m", "training.sim_data", "demos", "--out", str(data),
          "--tracks", tracks, "--layouts", cfg.layout, "--episodes", str(cfg.expert_episodes),
-         "--noise", str(sigma), "--jobs", str(cfg.jobs)), data / ".done")  # fmt: skip
+         "--noise", str(sigma), "--jobs", str(cfg.all_jobs())), data / ".done")  # fmt: skip
     return data
 
 

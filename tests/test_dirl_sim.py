@@ -43,6 +43,32 @@ def test_settings_parse_tuples_and_refuse_unknown_fields():
         dirl_sim.parse(["--set", "drive_explore=maybe"])
 
 
+def test_threads_and_jobs_default_to_every_usable_core_split_among_parallel_steps(monkeypatch):
+    monkeypatch.setattr(dirl_sim.os, "sched_getaffinity", lambda pid: set(range(16)))
+    cfg = dirl_sim.parse(["--set", "parallel=3"])
+    assert (cfg.threads, cfg.jobs) == (0, 0)  # "every core", resolved when steps are built
+    assert (cfg.all_threads(), cfg.all_jobs(), cfg.step_threads(), cfg.step_jobs()) == (
+        16,
+        16,
+        5,
+        5,
+    )
+    assert "threads=5" in cfg.iterate_overrides()
+    calls = []  # the demonstrations' command: every simulator process
+    dirl_steps.demonstrations(cfg, lambda name, argv, marker: calls.append(argv), 0.0, "1000", "x")
+    assert calls[0][calls[0].index("--jobs") + 1] == "16"
+    given = dirl_sim.parse(["--set", "threads=4", "--set", "jobs=6", "--set", "parallel=2"])
+    assert (given.step_threads(), given.step_jobs()) == (2, 3)
+
+
+@pytest.mark.parametrize("field", ["threads=-1", "jobs=-2", "parallel=0"])
+def test_negative_threads_or_jobs_are_refused_in_one_line(field, capsys):
+    with pytest.raises(SystemExit) as exc:
+        dirl_sim.parse(["--set", field])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("python -m bench.dirl_sim")
+
+
 def test_the_drives_explore_with_the_configured_noise():
     cfg = dirl_sim.parse(["--set", "explore_amplitude=0.6", "--set", "explore_hold_s=0.4,1.2"])
     args = dirl_steps.explore_args(cfg)
