@@ -361,9 +361,10 @@ def parse(argv: list[str] | None) -> StudyConfig:
     longest = max(cfg.iterations, cfg.robustness_iterations)
     if cfg.iteration_tracks and len(cfg.iteration_tracks) < longest:
         p.error(f"iteration_tracks: {len(cfg.iteration_tracks)} entries for {longest} iterations")
-    for name in ("threads", "jobs", "parallel"):
-        if getattr(cfg, name) < (1 if name == "parallel" else 0):
-            p.error(f"{name}: {getattr(cfg, name)} (threads and jobs: 0 for every core, or more)")
+    if cfg.threads < 0 or cfg.jobs < 0:
+        p.error(f"threads {cfg.threads}, jobs {cfg.jobs}: 0 (every core) or more")
+    if cfg.parallel < 1:
+        p.error(f"parallel: {cfg.parallel} (1 or more)")
     if len(cfg.select_tracks) != 1 and len(cfg.select_tracks) < longest:
         p.error(f"select_tracks: {len(cfg.select_tracks)} entries for {longest} iterations")
     return dataclasses.replace(cfg, report_only=a.report)

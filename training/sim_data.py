@@ -144,9 +144,9 @@ def run_jobs(jobs: list[Job], jobs_at_once: int, what: str) -> None:
     if not todo:
         return
     # carrt/sim/pool.py: an executor whose workers use one math thread each. A fresh executor
-    # per chunk of TASKS_PER_WORKER tasks per worker bounds what a long-lived
-    # worker accumulates; not max_tasks_per_child, with which CPython 3.11/3.12 hangs once
-    # every worker has retired (CPython gh-115634: the call waited forever after 100 placements).
+    # per chunk of TASKS_PER_WORKER tasks per worker bounds what a long-lived worker
+    # accumulates; not max_tasks_per_child, with which CPython 3.11/3.12 hangs once every
+    # worker has retired (CPython gh-115634: the call waited forever after 100 placements).
     failed: list[tuple[Job, int]] = []
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=what, unit="placement")
     chunk = jobs_at_once * TASKS_PER_WORKER
