@@ -30,6 +30,7 @@ from training.imitation import imitation_loss, train_imitation  # noqa: E402
 from training.models import PolicyNet, WorldModel  # noqa: E402
 from training.refine import (  # noqa: E402
     anchor_penalty,
+    gradient_step,
     held_out_objective,
     train_refine,
 )
@@ -294,6 +295,33 @@ def test_a_centred_gradient_changes_plans_per_start_not_all_alike(data, trained_
         individual[flag] = float((moved - shift).abs().mean())
     assert common[True] < 0.3 * common[False], common
     assert individual[True] > 0.1 * individual[False], individual
+
+
+def test_without_refine_steering_the_world_model_gradient_reaches_only_the_throttle(
+    data, trained_world_model
+):
+    """refine_steering False (our fifth safeguard, True in the paper's form): the gradient the
+    imagined objective leaves on the sampled actions has a zero steering channel and the same
+    throttle channel as the paper's form; centred or not."""
+    _, _, windows, _ = data
+    world_model = copy.deepcopy(trained_world_model[0])
+    world_model.freeze()
+    batch = take(windows, range(8))
+    grads = {}
+    for steering in (True, False):
+        for centred in (False, True):
+            actions = batch["actions"].clone().requires_grad_(True)
+            cfg = tiny(refine_steering=steering, refine_center_gradient=centred)
+            loss, _ = gradient_step(cfg, world_model, batch, actions, (1.0, 10.0, 1.0))
+            loss.backward()
+            grads[steering, centred] = actions.grad.clone()
+    for centred in (False, True):
+        assert grads[True, centred][..., 0].abs().sum() > 0  # the paper's form steers
+        assert torch.equal(
+            grads[False, centred][..., 0], torch.zeros_like(grads[True, centred][..., 0])
+        )
+        assert torch.allclose(grads[False, centred][..., 1], grads[True, centred][..., 1])
+        assert grads[False, centred][..., 1].abs().sum() > 0
 
 
 def test_refinement_gradient_reaches_the_actions_through_the_frozen_world_model(data):

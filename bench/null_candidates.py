@@ -1,0 +1,154 @@
+"""Null candidates: the start policy moved as far as refinement moved it, in random directions.
+
+    python -m bench.null_candidates --start RUN/dirl1/checkpoints/imitation.pt \
+        --like RUN/dirl1/candidates/refine300.pt --episodes DATA/drives --count 4 --out NULL/
+
+Why: refinement with the study's safeguards moves the policy's plan by about 1 % of the action
+range (mean |Δμ| ~0.01 on recorded frames), yet on 20 validation placements its candidates'
+paired scores against the policy they came from swing by ±0.1 from one candidate to the next.
+Driving is chaotic: a plan that differs slightly takes a different line, meets the next
+obstacle a little differently, and a lap is won or lost. Selection by driving asks a candidate
+to beat its incumbent by two standard errors; whether a refined candidate that does so was
+improved, or only moved, is judged against these: policies moved exactly as far with no
+world model behind the direction. Drive them beside the real candidates with
+`python -m training.select_by_driving --candidates imitated=START NULL/null*.pt REFINED/refine*.pt`.
+
+Each null candidate adds to every parameter tensor (buffers excluded: BatchNorm statistics,
+the normalisation) Gaussian
+noise in proportion to that tensor's RMS, scaled by bisection until the mean |Δμ| over the
+recorded frames of --episodes equals the --like candidate's (within 2 %). OUT gets null<k>.pt
+(the start checkpoint with the moved weights, loadable wherever a policy checkpoint is) and
+null.json with each one's plan move (steering and throttle separately) beside the --like one's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from carrt.errors import EXIT_USAGE, UserError
+from training import checkpoint as ck
+from training.data import WindowDataset, load_episodes, take
+
+FRAMES = 512  # recorded frames the plan move is measured on, spread over the episodes
+TOLERANCE = 0.02  # relative agreement of the null move with the --like move
+
+
+def plan_frames(episodes: list[str], horizon: int) -> dict:
+    """Up to FRAMES start frames spread evenly over the episodes (image and speed)."""
+    windows = WindowDataset(load_episodes(episodes), horizon, predict_size=16)
+    if len(windows) == 0:
+        raise UserError(f"{', '.join(episodes)}: no windows of {horizon} steps to measure plans on")
+    stride = max(1, len(windows) // FRAMES)
+    batch = take(windows, range(0, len(windows), stride))
+    return {"image": batch["image"], "speed": batch["speed"]}
+
+
+@torch.no_grad()
+def plan(policy: torch.nn.Module, frames: dict) -> torch.Tensor:
+    return policy(frames["image"], frames["speed"])[0]
+
+
+def plan_move(moved: torch.Tensor, start: torch.Tensor) -> dict:
+    """Mean |Δμ| over frames and steps: both channels, steering, throttle."""
+    delta = (moved - start).abs()
+    return {
+        "both": float(delta.mean()),
+        "steering": float(delta[..., 0].mean()),
+        "throttle": float(delta[..., 1].mean()),
+    }
+
+
+def perturbed(state: dict, direction: dict, scale: float) -> dict:
+    return {k: v + scale * direction[k] if k in direction else v for k, v in state.items()}
+
+
+def random_direction(policy: torch.nn.Module, generator: torch.Generator) -> dict:
+    """Per parameter tensor: Gaussian noise times the tensor's RMS. Buffers (BatchNorm
+    statistics, the normalisation) stay as they are."""
+    direction = {}
+    for key, value in policy.named_parameters():
+        rms = value.detach().pow(2).mean().sqrt().clamp_min(1e-8)
+        direction[key] = torch.randn(value.shape, generator=generator) * rms
+    return direction
+
+
+def matched_scale(policy, state: dict, direction: dict, frames: dict, start, target: float):
+    """Bisection on the noise scale until the plan moves `target` (mean |Δμ|)."""
+    low, high = 0.0, 1e-3
+    for _ in range(40):  # grow until the move overshoots
+        policy.load_state_dict(perturbed(state, direction, high))
+        if plan_move(plan(policy, frames), start)["both"] >= target:
+            break
+        low, high = high, 2 * high
+    for _ in range(40):
+        mid = 0.5 * (low + high)
+        policy.load_state_dict(perturbed(state, direction, mid))
+        move = plan_move(plan(policy, frames), start)["both"]
+        if abs(move - target) <= TOLERANCE * target:
+            return mid
+        low, high = (mid, high) if move < target else (low, mid)
+    return 0.5 * (low + high)
+
+
+def make_null_candidates(start: Path, like: Path, episodes: list[str], count: int, out: Path,
+                         seed: int = 0) -> dict:  # fmt: skip
+    policy, ckpt = ck.load_policy(start)
+    reference, _ = ck.load_policy(like)
+    frames = plan_frames(episodes, ck.profile_of(ckpt).horizon)
+    start_plan = plan(policy, frames)
+    target = plan_move(plan(reference, frames), start_plan)
+    if not target["both"] > 0:
+        raise UserError(f"{like}: its plan equals {start}'s; nothing to match")
+    state = {k: v.clone() for k, v in policy.state_dict().items()}
+    generator = torch.Generator().manual_seed(seed)
+    out.mkdir(parents=True, exist_ok=True)
+    made = []
+    for k in range(count):
+        direction = random_direction(policy, generator)
+        scale = matched_scale(policy, state, direction, frames, start_plan, target["both"])
+        moved = perturbed(state, direction, scale)
+        policy.load_state_dict(moved)
+        move = plan_move(plan(policy, frames), start_plan)
+        path = out / f"null{k}.pt"
+        ck.save_checkpoint(path, **{**ckpt, "policy": moved})
+        made.append({"name": path.stem, "checkpoint": str(path), "scale": scale, "move": move})
+    summary = {"start": str(start), "like": str(like), "like_move": target, "frames":
+               len(frames["speed"]), "seed": seed, "null": made}  # fmt: skip
+    (out / "null.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.null_candidates", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    p.add_argument("--start", required=True, type=Path, help="the policy checkpoint to move")
+    p.add_argument("--like", required=True, type=Path, help="a candidate whose move to match")
+    p.add_argument("--episodes", required=True, nargs="+", help="recorded frames to measure on")
+    p.add_argument("--count", type=int, default=4)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, type=Path)
+    a = p.parse_args(argv)
+    try:
+        if a.count < 1:
+            raise UserError(f"--count must be >= 1, got {a.count}")
+        summary = make_null_candidates(a.start, a.like, a.episodes, a.count, a.out, a.seed)
+    except UserError as exc:
+        print(f"null_candidates: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    like = summary["like_move"]
+    print(f"{a.like}: plan moved {like['both']:.4f} (steering {like['steering']:.4f}, "
+          f"throttle {like['throttle']:.4f})")  # fmt: skip
+    for c in summary["null"]:
+        m = c["move"]
+        print(f"{c['checkpoint']}: plan moved {m['both']:.4f} (steering {m['steering']:.4f}, "
+              f"throttle {m['throttle']:.4f})")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

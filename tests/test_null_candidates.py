@@ -1,0 +1,78 @@
+"""Null candidates (bench/null_candidates.py): the start policy moved as far as a refined
+candidate moved it, in random directions, so that selection by driving can be judged against
+policies that only moved."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from bench import null_candidates as null  # noqa: E402
+from training import checkpoint as ck  # noqa: E402
+from training.iterate import main as train  # noqa: E402
+
+TINY = [
+    "--profile", "tiny", "--set", "threads=1", "--set", "progress=false",
+    "--set", "imitation_batch_size=8", "--set", "world_model_steps=0", "--set", "refine_steps=0",
+    "--set", "imitation_steps=10", "--set", "eval_windows=64", "--set", "figures=false",
+]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def start_and_like(sim_episodes, tmp_path_factory):
+    """A tiny imitation policy, and a "refined" copy whose policy head was nudged."""
+    before = torch.get_num_threads()
+    out = tmp_path_factory.mktemp("null") / "il"
+    assert train(["--episodes", str(sim_episodes), "--out", str(out), *TINY]) == 0
+    torch.set_num_threads(before)
+    ckpt = ck.load_checkpoint(out / "policy.pt")
+    gen = torch.Generator().manual_seed(1)
+    nudged = {k: v + 0.02 * torch.randn(v.shape, generator=gen) if k.startswith("head") else v
+              for k, v in ckpt["policy"].items()}  # fmt: skip
+    assert nudged.keys() == ckpt["policy"].keys() and any(k.startswith("head") for k in nudged)
+    like = out.parent / "like.pt"
+    ck.save_checkpoint(like, **{**ckpt, "policy": nudged})
+    return out / "policy.pt", like
+
+
+def test_null_candidates_move_the_plan_as_far_as_the_like_candidate(
+    start_and_like, sim_episodes, tmp_path, one_thread
+):
+    start, like = start_and_like
+    argv = ["--start", str(start), "--like", str(like), "--episodes", str(sim_episodes),
+            "--count", "2", "--out", str(tmp_path)]  # fmt: skip
+    assert null.main(argv) == 0
+    summary = json.loads((tmp_path / "null.json").read_text())
+    target = summary["like_move"]["both"]
+    assert target > 0 and summary["frames"] > 0
+    start_state = ck.load_checkpoint(start)["policy"]
+    plans = []
+    for entry in summary["null"]:
+        assert abs(entry["move"]["both"] - target) <= 0.02 * target, entry
+        policy, ckpt = ck.load_policy(entry["checkpoint"])  # a policy checkpoint like any other
+        assert ckpt["profile"] == "tiny"
+        moved = ckpt["policy"]
+        parameters = dict(policy.named_parameters())
+        buffers = [k for k in moved if k not in parameters]  # BatchNorm statistics, normalisation
+        assert any("running_" in k for k in buffers) and "image_mean" in buffers
+        assert all(torch.equal(moved[k], start_state[k]) for k in buffers)
+        assert all(not torch.equal(moved[k], start_state[k]) for k in parameters)
+        plans.append(null.plan(policy, null.plan_frames([str(sim_episodes)], 10)))
+    assert not torch.allclose(plans[0], plans[1])  # two directions, not one
+
+
+def test_bad_input_is_one_line_and_exit_2(start_and_like, sim_episodes, tmp_path, capsys):
+    start, like = start_and_like
+    common = ["--episodes", str(sim_episodes), "--out", str(tmp_path / "out")]
+    cases = {
+        "--count must be >= 1": ["--start", str(start), "--like", str(like), "--count", "0"],
+        "no such file": ["--start", str(tmp_path / "missing.pt"), "--like", str(like)],
+        "nothing to match": ["--start", str(start), "--like", str(start)],
+    }
+    for expected, argv in cases.items():
+        assert null.main([*argv, *common]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and expected in err[0], err
