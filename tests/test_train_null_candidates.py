@@ -4,6 +4,7 @@ policies that only moved."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -12,30 +13,34 @@ torch = pytest.importorskip("torch")
 
 from bench import null_candidates as null  # noqa: E402
 from training import checkpoint as ck  # noqa: E402
-from training.iterate import main as train  # noqa: E402
-
-TINY = [
-    "--profile", "tiny", "--set", "threads=1", "--set", "progress=false",
-    "--set", "imitation_batch_size=8", "--set", "world_model_steps=0", "--set", "refine_steps=0",
-    "--set", "imitation_steps=10", "--set", "eval_windows=64", "--set", "figures=false",
-]  # fmt: skip
+from training.config import IterateConfig  # noqa: E402
+from training.data import compute_normalisation, load_episodes  # noqa: E402
+from training.models import PolicyNet  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def start_and_like(sim_episodes, tmp_path_factory):
-    """A tiny imitation policy, and a "refined" copy whose policy head was nudged."""
-    before = torch.get_num_threads()
-    out = tmp_path_factory.mktemp("null") / "il"
-    assert train(["--episodes", str(sim_episodes), "--out", str(out), *TINY]) == 0
-    torch.set_num_threads(before)
-    ckpt = ck.load_checkpoint(out / "policy.pt")
+    """A tiny policy checkpoint (untrained: what is measured is how far plans move, not how
+    well they drive), and a "refined" copy whose policy head was nudged."""
+    episodes = load_episodes([sim_episodes])
+    cfg = IterateConfig(profile="tiny")
+    torch.manual_seed(0)
+    policy = PolicyNet(cfg.profile_obj)
+    norm = compute_normalisation(episodes)
+    policy.set_normalisation(norm)
+    common = {"config": dataclasses.asdict(cfg), "profile": "tiny", "stage": "imitation",
+              "step": 0, "world_model": None, "optimizer": None,
+              "normalisation": norm.to_dict(), "data_digest": "test", "iteration": 0,
+              "code_version": ck.code_version(),
+              "episodes": [ep.name for ep in episodes]}  # fmt: skip
+    folder = tmp_path_factory.mktemp("null")
+    ck.save_checkpoint(folder / "policy.pt", **common, policy=policy.state_dict())
     gen = torch.Generator().manual_seed(1)
     nudged = {k: v + 0.02 * torch.randn(v.shape, generator=gen) if k.startswith("head") else v
-              for k, v in ckpt["policy"].items()}  # fmt: skip
-    assert nudged.keys() == ckpt["policy"].keys() and any(k.startswith("head") for k in nudged)
-    like = out.parent / "like.pt"
-    ck.save_checkpoint(like, **{**ckpt, "policy": nudged})
-    return out / "policy.pt", like
+              for k, v in policy.state_dict().items()}  # fmt: skip
+    assert any(k.startswith("head") for k in nudged)
+    ck.save_checkpoint(folder / "like.pt", **common, policy=nudged)
+    return folder / "policy.pt", folder / "like.pt"
 
 
 def test_null_candidates_move_the_plan_as_far_as_the_like_candidate(
