@@ -97,7 +97,7 @@ class IterateConfig:
     # truth for throttle 0.67/0.57/0.60 (s11 iteration 1, seeds 0-2) and for steering
     # 0.50/0.42/0.38, and full throttle was the truly best alternative at ~80 % of starts.
     # Measured by driving (README "null candidates", 3 seeds): no better than random moves of
-    # its size, so it stays off by default. True: the paper's form
+    # its size, so the safeguard stays off by default (True, the paper's form)
     refine_steering: bool = True
     # safeguard: refinement by search instead of the gradient (training/refine_search.py):
     # from each start the world model imagines the plan and fixed alternatives (steering ±0.3 /
