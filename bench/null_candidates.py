@@ -14,9 +14,9 @@ world model behind the direction. Drive them beside the real candidates with
 `python -m training.select_by_driving --candidates imitated=START NULL/null*.pt REFINED/refine*.pt`.
 
 Each null candidate adds to every parameter tensor (buffers excluded: BatchNorm statistics,
-the normalisation) Gaussian
-noise in proportion to that tensor's RMS, scaled by bisection until the mean |Δμ| over the
-recorded frames of --episodes equals the --like candidate's (within 2 %). OUT gets null<k>.pt
+the normalisation) Gaussian noise in proportion to that tensor's RMS, scaled by bisection until
+the mean |Δμ| over recorded frames of --episodes (export.parity.sample_frames, the frames the
+export's parity check uses) equals the --like candidate's (within 2 %). OUT gets null<k>.pt
 (the start checkpoint with the moved weights, loadable wherever a policy checkpoint is) and
 null.json with each one's plan move (steering and throttle separately) beside the --like one's.
 """
@@ -28,34 +28,25 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from carrt.errors import EXIT_USAGE, UserError
+from export.parity import Frames, sample_frames, torch_outputs
 from training import checkpoint as ck
-from training.data import WindowDataset, load_episodes, take
 
 FRAMES = 512  # recorded frames the plan move is measured on, spread over the episodes
 TOLERANCE = 0.02  # relative agreement of the null move with the --like move
 
 
-def plan_frames(episodes: list[str], horizon: int) -> dict:
-    """Up to FRAMES start frames spread evenly over the episodes (image and speed)."""
-    windows = WindowDataset(load_episodes(episodes), horizon, predict_size=16)
-    if len(windows) == 0:
-        raise UserError(f"{', '.join(episodes)}: no windows of {horizon} steps to measure plans on")
-    stride = max(1, len(windows) // FRAMES)
-    batch = take(windows, range(0, len(windows), stride))
-    return {"image": batch["image"], "speed": batch["speed"]}
+def plan(policy: torch.nn.Module, frames: Frames) -> np.ndarray:
+    """μ (N, H, 2) of the policy on the frames."""
+    return torch_outputs(policy, frames)[0]
 
 
-@torch.no_grad()
-def plan(policy: torch.nn.Module, frames: dict) -> torch.Tensor:
-    return policy(frames["image"], frames["speed"])[0]
-
-
-def plan_move(moved: torch.Tensor, start: torch.Tensor) -> dict:
+def plan_move(moved: np.ndarray, start: np.ndarray) -> dict:
     """Mean |Δμ| over frames and steps: both channels, steering, throttle."""
-    delta = (moved - start).abs()
+    delta = np.abs(moved - start)
     return {
         "both": float(delta.mean()),
         "steering": float(delta[..., 0].mean()),
@@ -77,29 +68,33 @@ def random_direction(policy: torch.nn.Module, generator: torch.Generator) -> dic
     return direction
 
 
-def matched_scale(policy, state: dict, direction: dict, frames: dict, start, target: float):
-    """Bisection on the noise scale until the plan moves `target` (mean |Δμ|)."""
+def matched_scale(policy, state: dict, direction: dict, frames: Frames, start, target: float):
+    """Bisection on the noise scale until the plan moves `target` (mean |Δμ|): (scale, the
+    plan_move at it). Leaves the policy holding the weights of that scale."""
+
+    def move_at(scale: float) -> dict:
+        policy.load_state_dict(perturbed(state, direction, scale))
+        return plan_move(plan(policy, frames), start)
+
     low, high = 0.0, 1e-3
     for _ in range(40):  # grow until the move overshoots
-        policy.load_state_dict(perturbed(state, direction, high))
-        if plan_move(plan(policy, frames), start)["both"] >= target:
+        if move_at(high)["both"] >= target:
             break
         low, high = high, 2 * high
     for _ in range(40):
         mid = 0.5 * (low + high)
-        policy.load_state_dict(perturbed(state, direction, mid))
-        move = plan_move(plan(policy, frames), start)["both"]
-        if abs(move - target) <= TOLERANCE * target:
-            return mid
-        low, high = (mid, high) if move < target else (low, mid)
-    return 0.5 * (low + high)
+        move = move_at(mid)
+        if abs(move["both"] - target) <= TOLERANCE * target:
+            break
+        low, high = (mid, high) if move["both"] < target else (low, mid)
+    return mid, move
 
 
 def make_null_candidates(start: Path, like: Path, episodes: list[str], count: int, out: Path,
                          seed: int = 0) -> dict:  # fmt: skip
     policy, ckpt = ck.load_policy(start)
     reference, _ = ck.load_policy(like)
-    frames = plan_frames(episodes, ck.profile_of(ckpt).horizon)
+    frames = sample_frames(episodes, max_frames=FRAMES)
     start_plan = plan(policy, frames)
     target = plan_move(plan(reference, frames), start_plan)
     if not target["both"] > 0:
@@ -110,15 +105,12 @@ def make_null_candidates(start: Path, like: Path, episodes: list[str], count: in
     made = []
     for k in range(count):
         direction = random_direction(policy, generator)
-        scale = matched_scale(policy, state, direction, frames, start_plan, target["both"])
-        moved = perturbed(state, direction, scale)
-        policy.load_state_dict(moved)
-        move = plan_move(plan(policy, frames), start_plan)
+        scale, move = matched_scale(policy, state, direction, frames, start_plan, target["both"])
         path = out / f"null{k}.pt"
-        ck.save_checkpoint(path, **{**ckpt, "policy": moved})
+        ck.save_checkpoint(path, **{**ckpt, "policy": perturbed(state, direction, scale)})
         made.append({"name": path.stem, "checkpoint": str(path), "scale": scale, "move": move})
     summary = {"start": str(start), "like": str(like), "like_move": target, "frames":
-               len(frames["speed"]), "seed": seed, "null": made}  # fmt: skip
+               len(frames), "seed": seed, "null": made}  # fmt: skip
     (out / "null.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
