@@ -115,7 +115,7 @@ class IterateConfig:
     # -- the world model's counterfactual check (simulator only: training/counterfactual.py)
     counterfactual_starts: int = 0  # start states per placement; 0: off (a real car's data)
     counterfactual_layout: str = "hard"  # simulator layout of the held-out placements
-    counterfactual_tracks: str = "200-204"  # held-out placements (never 100-124, the test sets)
+    counterfactual_tracks: str = "200-204"  # held-out placements (never 100-199, the test sets)
     # -- every stage
     grad_clip: float = 1.0  # max global gradient norm
     log_every: int = 10  # steps between logged scalars (TensorBoard, loss history)

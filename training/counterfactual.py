@@ -367,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--run", required=True, help="iterate.py run directory (world_model.pt)")
     p.add_argument("--data", help="counterfactual .npz (default: generate RUN/counterfactual.npz)")
     p.add_argument("--layout", default="hard")
-    p.add_argument("--tracks", default="200-204", help="held-out placements (not 100-124)")
+    p.add_argument("--tracks", default="200-204", help="held-out placements (not 100-199)")
     p.add_argument("--starts", type=int, default=20, help="start states per placement")
     p.add_argument("--json", help="write the numbers here")
     a = p.parse_args(argv)

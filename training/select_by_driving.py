@@ -22,7 +22,7 @@ luckiest one (the winner's curse); in the 2026-11-24 study the plain maximum cho
 that drove worse on the held-out placements than the one imitation made, on every seed at
 iteration 1. --margin-z 0 is the plain maximum (ties: the incumbent). On a real car the same
 choice is a person driving the candidates; here the simulator does it on placements that are
-neither trained on nor the evaluation ones (the `hard` layout's 100-124 are refused).
+neither trained on nor the evaluation ones (the `hard` layout's 100-199 are refused).
 
 OUT gets policy.pt and policy.onnx of the chosen candidate (plus each --keep file, so OUT is a
 run directory the next iteration's `--init` reads), candidates/<name>.onnx, selection.json with
@@ -245,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="where the chosen policy goes")
     p.add_argument("--episodes", nargs="+", required=True, help="frames for the export's check")
     p.add_argument("--layout", default="hard")
-    p.add_argument("--tracks", default="200-219", help="validation placements (never 100-124)")
+    p.add_argument("--tracks", default="200-219", help="validation placements (never 100-199)")
     p.add_argument("--seconds", type=float, default=30.0, help="simulated s per placement")
     p.add_argument("--jobs", type=int, default=2, help="simulator processes")
     p.add_argument("--collision-cost", type=float, default=COLLISION_COST)

@@ -18,7 +18,7 @@ Only episodes are training data, as on a real car; the simulator's saved traject
 
 Runs go to a process pool (one process per core); a finished placement leaves a marker, so an
 interrupted call resumes where it stopped. Placements must not overlap the evaluation ones
-(the `hard` layout's 100-124): `parse_tracks` refuses them.
+(the `hard` layout's 100-199): `parse_tracks` refuses them.
 """
 
 from __future__ import annotations
@@ -39,9 +39,10 @@ from carrt.errors import EXIT_USAGE, UserError
 from carrt.eval_cmd import parse_int_list
 from carrt.sim.pool import worker_pool
 
-# Held out, never recorded for training: `carrt eval`'s default 100-104, and 105-124, which the
-# study adds since 5 placements alone judged DIRL against IL by their own noise.
-EVALUATION_TRACKS = frozenset(range(100, 125))
+# Held out, never recorded for training: `carrt eval`'s default 100-104, 105-124 (the study's
+# until 2026-11-25: 5 placements alone judged DIRL against IL by their own noise) and 125-199
+# (since 2026-11-26: per-placement differences are heavy-tailed, 25 placements still did).
+EVALUATION_TRACKS = frozenset(range(100, 200))
 TASKS_PER_WORKER = 25  # placements a worker process runs before a fresh pool replaces it
 
 
