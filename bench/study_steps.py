@@ -39,10 +39,11 @@ from pathlib import Path
 # Seconds a step of each kind took in the studies of 2026-11-24/25 (2-core EPYC, two steps at
 # once with one torch thread and one simulator process each; bench/results/*/logs): the ETA's
 # guess for a kind until a step of it has run here. "train dirl1" trains its world model from
-# scratch, later iterations continue it.
+# scratch, later iterations continue it. "eval" is twice those runs' 150 s: 100 placements × 30
+# simulated s since 2026-11-25 against 25 × 60 (bench.redrive: ~140 s each with both cores).
 TYPICAL_S = {"demos": 240, "train il": 900, "train dirl1": 1400, "train dirl": 890,
              "train il-equal": 830, "train unc": 150, "train search": 215, "select": 260,
-             "eval": 150, "drive": 70, "takeovers": 50}  # fmt: skip
+             "eval": 300, "drive": 70, "takeovers": 50}  # fmt: skip
 ANY = "step"  # the one kind of a plan given as a plain count
 
 
