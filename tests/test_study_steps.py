@@ -84,11 +84,11 @@ def test_report_only_runs_nothing_and_names_each_chain_s_first_missing_step(tmp_
 def test_the_eta_weighs_the_steps_left_by_their_kind(tmp_path):
     """Three trainings and three evaluations planned, one at a time. After one training of
     600 s (typical 900: this machine is at 2/3) the evaluations are guessed at 2/3 of their
-    typical 150 s; once one has run, at its own time."""
+    typical 300 s (bench/study_steps.TYPICAL_S); once one has run, at its own time."""
     step = StudyStep(tmp_path, {"train il": 3, "eval": 3}, parallel=1)
     step.done_by_kind["train il"] += 1
     step.seconds["train il"].append(600.0)
-    assert step.eta_s() == pytest.approx(2 * 600 + 3 * 100)
+    assert step.eta_s() == pytest.approx(2 * 600 + 3 * 200)
     step.done_by_kind["eval"] += 1
     step.seconds["eval"].append(50.0)
     assert step.eta_s() == pytest.approx(2 * 600 + 2 * 50)
@@ -96,7 +96,7 @@ def test_the_eta_weighs_the_steps_left_by_their_kind(tmp_path):
     assert step.eta_s() == pytest.approx(2 * 600 + 1 * 50)
     assert step.seconds["eval"] == [50.0]
     two = StudyStep(tmp_path, {"train il": 3, "eval": 3}, parallel=2)
-    assert two.eta_s() == pytest.approx((3 * 900 + 3 * 150) / 2), "typical times, two at once"
+    assert two.eta_s() == pytest.approx((3 * 900 + 3 * 300) / 2), "typical times, two at once"
 
 
 def test_a_plain_count_plans_one_kind_of_step(tmp_path, capsys):
