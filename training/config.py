@@ -108,6 +108,17 @@ class IterateConfig:
     refine_search: bool = False
     refine_search_margin: float = 0.0
     refine_w_search: float = 50.0  # weight of the L1 toward the chosen alternative
+    # refinement from the drives' real outcomes instead of imagination (training/
+    # refine_outcomes.py): the policy imitates its own executed actions in the AUTO steps of
+    # the drives, weighted exp(A/(τ·std A)) by the advantage of the recorded return (the
+    # objective above with recorded speeds and collisions, take-overs counted as collisions)
+    # over a ridge baseline on the policy's features; the world model is not used. Why: the
+    # world models' judgement of small changes to a plan drove no better than random moves
+    # (README, "null candidates"). False: the paper's refinement in imagination.
+    refine_outcomes: bool = False
+    outcome_advantage: bool = True  # False: every window weighs 1 (the control: no outcome)
+    outcome_temperature: float = 1.0  # τ, in standard deviations of the advantage
+    outcome_weight_max: float = 20.0  # cap on a window's weight
     # every N refinement steps the policy is also kept as a candidate (OUT/candidates/
     # refine<step>.pt) so that how far to refine can be chosen by driving
     # (training/select_by_driving.py); 0: only the final policy
@@ -140,7 +151,7 @@ class IterateConfig:
             "imitation_batch_size", "world_model_batch_size", "refine_batch_size", "log_every",
             "imitation_lr", "world_model_lr", "refine_lr", "grad_clip", "uncertainty_clip",
             "imitation_lr_final",
-            "eval_windows",
+            "eval_windows", "outcome_temperature", "outcome_weight_max",
         ]  # fmt: skip
         for name in positive:
             if not getattr(self, name) > 0:

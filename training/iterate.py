@@ -300,6 +300,10 @@ def train_stage(stage, cfg, policy, world_model, data: StageData, norm, ctx, res
             policy=policy, resume=resume, val_dataset=data.val_windows,
         )  # fmt: skip
     demonstrations = data.demonstrations() if cfg.refine_w_imitation else None
+    if cfg.refine_outcomes:
+        from training.refine_outcomes import refine_by_outcomes
+
+        return refine_by_outcomes(cfg, policy, data, ctx, resume, demonstrations)
     return train_refine(
         cfg, policy, world_model, data.windows, norm, ctx,
         resume=resume, val_dataset=data.val_windows, demonstrations=demonstrations,

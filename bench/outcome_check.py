@@ -1,0 +1,196 @@
+"""Refinement from real outcomes, judged by driving: does it beat the policy it refines?
+
+    python -m bench.outcome_check                       # σ 0, iteration 1, seeds 0-2 (~1 h here)
+    python -m bench.outcome_check --set seeds=0 --set outcome_steps=200
+
+The study's σ 0 chain up to DIRL iteration 1's imitation (bench/dirl_sim.py, its settings and
+its commands): demonstrations, IL, the iteration's drives (exploration noise, every crash
+labelled) and take-overs, the previous policy imitating again on every labelled frame
+("imitated", the policy the study's selection keeps unless refinement beats it). Then, from
+imitated, `refine_outcomes` (training/refine_outcomes.py) in two arms with everything else
+equal:
+
+- "outcomes": the executed actions of the drives weighted by their advantage (real return over
+  a cross-fitted ridge baseline on the policy's features);
+- "uniform": the same windows, every one weighted 1 (`outcome_advantage=false`): imitation of
+  the noisy drives with no outcome in it, which says whether the advantage carries the signal.
+
+Every policy is driven on the held-out placements (100-199 × 30 s, as the study); the table
+pairs each arm with imitated seed by seed (each seed's difference ± its paired standard error
+over the placements, then mean ± std over seeds). The arms' settings are fixed here, before
+any driving: none was tuned on the placements they are judged on. OUT/results.json holds
+every run and each arm's outcome diagnostics (baseline R², effective sample share).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bench.dirl_sim import StudyConfig, usable_cores
+from bench.dirl_steps import ROOT, demonstrations, evaluate, iterate_cmd, iteration_drives
+from bench.study_steps import StudyStep, run_chains
+from carrt.errors import UserError
+from carrt.settings import apply_sets
+
+ARMS = {"outcomes": "true", "uniform": "false"}  # arm → outcome_advantage
+
+
+@dataclass
+class CheckConfig:
+    """The study's settings (StudyConfig) plus the refinement arms'."""
+
+    out: str = "bench/results/outcome"
+    seeds: tuple[int, ...] = (0, 1, 2)
+    outcome_steps: int = 500  # refinement steps of each arm
+    outcome_lr: float = 3e-4  # the study's re-imitation learning rate
+    outcome_batch: int = 64  # the imitation batch of the cpu profile
+    outcome_w_imitation: float = 1.0  # imitation's L1 on the demonstrations beside it
+    outcome_temperature: float = 1.0  # τ of the advantage weights
+    parallel: int = 2
+    study: StudyConfig = field(default_factory=StudyConfig)
+
+
+def arm_flags(cfg: CheckConfig, advantage: str) -> list[str]:
+    sets = ("refine_outcomes=true", f"outcome_advantage={advantage}",
+            f"refine_steps={cfg.outcome_steps}", f"refine_lr={cfg.outcome_lr}",
+            f"refine_batch_size={cfg.outcome_batch}", "world_model_steps=0",
+            f"refine_w_imitation={cfg.outcome_w_imitation}",
+            f"outcome_temperature={cfg.outcome_temperature}")  # fmt: skip
+    return [arg for s in sets for arg in ("--set", s)]
+
+
+def chain(cfg: CheckConfig, step: StudyStep, seed: int, rows: list[dict]) -> None:
+    """IL → drives → imitated → each arm, every policy evaluated, for one seed."""
+    study = cfg.study
+    tag = f"noise0-seed{seed}"
+    runs = Path(cfg.out) / "runs" / f"seed{seed}"
+    expert = Path(cfg.out) / "data" / "expert-noise0"
+    imitation = ["--seed", str(seed), "--set", f"imitation_steps={study.imitation_steps}",
+                 "--set", "world_model_steps=0", "--set", "refine_steps=0"]  # fmt: skip
+    il = runs / "il"
+    step(f"train-{tag}-il", iterate_cmd(study, [expert], il, *imitation), il / ".done")
+    data = [expert, *iteration_drives(study, step, tag, 0.0, 1, il)]
+    imitated = runs / "imitated"
+    again = ["--set", "reimitate=true", "--set", f"imitation_steps={study.reimitate_steps}",
+             "--set", f"imitation_lr={study.reimitate_lr}"]  # fmt: skip
+    step(f"train-{tag}-imitated", iterate_cmd(study, data, imitated, "--seed", str(seed),
+         "--init", str(il), *again, "--set", "world_model_steps=0", "--set", "refine_steps=0"),
+         imitated / ".done")  # fmt: skip
+    models = {"IL": il, "imitated": imitated}
+    for arm, advantage in ARMS.items():
+        run = runs / arm
+        step(f"train-{tag}-{arm}", iterate_cmd(study, data, run, "--seed", str(seed), "--init",
+             str(imitated), *arm_flags(cfg, advantage)), run / ".done")  # fmt: skip
+        models[arm] = run
+    for model, run in models.items():
+        out = evaluate(study, step, f"{tag}-{model}", run / "policy.onnx", run / "eval.json")
+        diagnostics = run / "outcomes.json"
+        rows.append({"model": model, "seed": seed, "run": str(run), "runs": out["runs"],
+                     "outcomes": json.loads(diagnostics.read_text())
+                     if diagnostics.is_file() else None})  # fmt: skip
+
+
+def paired(rows: list[dict], model: str, base: str, key: str) -> list[tuple[int, float, float]]:
+    """(seed, mean difference, its paired standard error) over the placements both drove."""
+    out = []
+    for r in (r for r in rows if r["model"] == model):
+        b = next((x for x in rows if x["model"] == base and x["seed"] == r["seed"]), None)
+        if b is None:
+            continue
+        mine = {run["track"]: run[key] for run in r["runs"]}
+        theirs = {run["track"]: run[key] for run in b["runs"]}
+        d = np.array([mine[t] - theirs[t] for t in mine if t in theirs], dtype=float)
+        se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
+        out.append((r["seed"], float(d.mean()), se))
+    return out
+
+
+def report(rows: list[dict]) -> str:
+    lines = ["| model | seeds | completion | collisions / min | avg m/s |", "|---|---|---|---|---|"]
+    for model in dict.fromkeys(r["model"] for r in rows):
+        runs = [run for r in rows if r["model"] == model for run in r["runs"]]
+
+        def cell(key: str, fmt: str, runs=runs) -> str:
+            v = np.array([run[key] for run in runs], dtype=float)
+            return f"{format(v.mean(), fmt)} ± {format(v.std(), fmt)}"
+
+        seeds = sum(r["model"] == model for r in rows)
+        completion, collisions = cell("completion_ratio", ".2f"), cell("collisions_per_min", ".1f")
+        lines.append(
+            f"| {model} | {seeds} | {completion} | {collisions} | {cell('average_speed', '.2f')} |"
+        )
+    lines += [
+        "",
+        "| model | against | Δ completion, mean ± std over seeds | per seed (± paired SE) "
+        "| Δ collisions / min | per seed |",
+        "|---|---|---|---|---|---|",
+    ]
+    for model, base in (("outcomes", "imitated"), ("uniform", "imitated"),
+                        ("outcomes", "uniform"), ("imitated", "IL")):  # fmt: skip
+        comp = paired(rows, model, base, "completion_ratio")
+        coll = paired(rows, model, base, "collisions_per_min")
+        if not comp:
+            continue
+
+        def spread(p, fmt):
+            m = np.array([d for _, d, _ in p])
+            return f"{format(m.mean(), fmt)} ± {format(m.std(), fmt.lstrip('+'))}"
+
+        each = ", ".join(f"{d:+.2f} ± {se:.2f}" for _, d, se in comp)
+        each_c = ", ".join(f"{d:+.1f} ± {se:.1f}" for _, d, se in coll)
+        lines.append(f"| {model} | {base} | {spread(comp, '+.3f')} | {each} "
+                     f"| {spread(coll, '+.2f')} | {each_c} |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def parse(argv: list[str] | None) -> CheckConfig:
+    p = argparse.ArgumentParser(
+        prog="python -m bench.outcome_check", description=__doc__.split("\n")[0]
+    )
+    p.add_argument(
+        "--set", action="append", default=[], metavar="FIELD=VALUE",
+        help="a CheckConfig field (bench/outcome_check.py); tuples comma-separated",
+    )  # fmt: skip
+    a = p.parse_args(argv)
+    try:
+        cfg = apply_sets(CheckConfig(), a.set, "CheckConfig in bench/outcome_check.py")
+    except UserError as exc:
+        p.error(str(exc))
+    if cfg.parallel < 1:
+        p.error(f"parallel: {cfg.parallel} (1 or more)")
+    cores = usable_cores()
+    study = dataclasses.replace(cfg.study, out=cfg.out, seeds=cfg.seeds, demo_noise=(0.0,),
+                                parallel=cfg.parallel, threads=cores, jobs=cores)  # fmt: skip
+    return dataclasses.replace(cfg, study=study)
+
+
+def main(argv: list[str] | None = None) -> int:
+    cfg = parse(argv)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    kinds = {"demos": 1, "train il": len(cfg.seeds), "drive": len(cfg.seeds),
+             "takeovers": len(cfg.seeds), "train dirl": 3 * len(cfg.seeds),
+             "eval": 4 * len(cfg.seeds)}  # fmt: skip
+    step = StudyStep(out, kinds, parallel=cfg.parallel, cwd=ROOT)
+    demonstrations(cfg.study, step, 0.0, cfg.study.train_tracks, "expert")
+    rows, _ = run_chains([functools.partial(chain, cfg, step, s) for s in cfg.seeds])
+    text = report(rows)
+    results = {"config": dataclasses.asdict(cfg), "rows": rows,
+               "wall_s": time.monotonic() - started}  # fmt: skip
+    (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    (out / "table.md").write_text(text + "\n")
+    print("\n" + text + f"\n\nwritten: {out / 'results.json'}, {out / 'table.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
