@@ -41,7 +41,7 @@ from carrt.sim.pool import worker_pool
 
 # Held out, never recorded for training: `carrt eval`'s default 100-104, 105-124 (the study's
 # until 2026-11-25: 5 placements alone judged DIRL against IL by their own noise) and 125-199
-# (since 2026-11-26: per-placement differences are heavy-tailed, 25 placements still did).
+# (since 2026-11-25: per-placement differences are heavy-tailed, 25 placements still did).
 EVALUATION_TRACKS = frozenset(range(100, 200))
 TASKS_PER_WORKER = 25  # placements a worker process runs before a fresh pool replaces it
 

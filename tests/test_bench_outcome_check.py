@@ -1,0 +1,53 @@
+"""bench/outcome_check.py: the arms' commands and the paired table it reports.
+
+The check itself trains and drives for an hour; here its pieces: the arms differ in nothing
+but the advantage, refinement is told to use the drives' outcomes and no world model, and the
+table pairs each arm with the re-imitated policy placement by placement, seed by seed.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from bench import outcome_check
+
+
+def _row(model, seed, completions, collisions=None):
+    collisions = collisions or [0.0] * len(completions)
+    pairs = enumerate(zip(completions, collisions, strict=True))
+    runs = [{"track": 100 + i, "seed": 0, "completion_ratio": c, "collisions_per_min": k,
+             "average_speed": 1.5} for i, (c, k) in pairs]  # fmt: skip
+    return {"model": model, "seed": seed, "runs": runs}
+
+
+def test_the_arms_differ_only_in_the_advantage():
+    cfg = outcome_check.CheckConfig()
+    flags = {a: outcome_check.arm_flags(cfg, adv) for a, adv in outcome_check.ARMS.items()}
+    sets = {a: {f for f in flags[a] if f != "--set"} for a in flags}
+    assert sets["outcomes"] ^ sets["uniform"] == {
+        "outcome_advantage=true", "outcome_advantage=false"
+    }  # fmt: skip
+    assert {"refine_outcomes=true", "world_model_steps=0"} <= sets["outcomes"]
+
+
+def test_differences_are_paired_by_placement_within_each_seed():
+    rows = [
+        _row("imitated", 0, [0.5, 1.0, 0.2]),
+        _row("outcomes", 0, [0.7, 1.0, 0.2]),
+        _row("imitated", 1, [0.9, 0.9, 0.9]),
+        _row("outcomes", 1, [0.9, 0.6, 0.9]),
+    ]
+    got = outcome_check.paired(rows, "outcomes", "imitated", "completion_ratio")
+    assert [s for s, _, _ in got] == [0, 1]
+    assert got[0][1] == pytest.approx(0.2 / 3) and got[1][1] == pytest.approx(-0.1)
+    # seed 0's differences 0.2, 0, 0: sample std 0.2/√3, over √3 placements
+    assert got[0][2] == pytest.approx(0.2 / 3)
+    table = outcome_check.report(rows)
+    assert "| outcomes | imitated |" in table and "-0.017 ± 0.083" in table, table
+
+
+def test_a_bad_setting_is_refused_in_one_line(capsys):
+    with pytest.raises(SystemExit) as stop:
+        outcome_check.parse(["--set", "parallel=0"])
+    assert stop.value.code == 2
+    assert "parallel: 0" in capsys.readouterr().err.strip().splitlines()[-1]
