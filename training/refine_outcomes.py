@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from carrt.episodes.reader import labels_before
 from carrt.interfaces import Mode
 from training.data import WindowDataset
 from training.imitation import imitation_loss
@@ -114,7 +115,7 @@ class OutcomeDataset(WindowDataset):
         per_step = np.concatenate(
             [self._episode_returns(ep, a) for ep, a in zip(episodes, self._eps, strict=True)]
         )
-        self.returns = per_step[self.store.offsets[self.index[:, 0]] + self.index[:, 1]]
+        self.returns = per_step[self._start.numpy()]  # each window's start, global step
         self.fold = (self.index[:, 0] % 2).astype(np.int64)  # episodes alternate halves
         self._auto = torch.from_numpy(np.concatenate(self._auto_masks).astype(np.float32))
         self.window_weight = torch.ones(len(self.index))
@@ -149,16 +150,9 @@ def _auto_steps(ep) -> np.ndarray:
 
 def _takeover_labels(ep) -> np.ndarray:
     """1 for the steps in the 0.5 s before each take-over (override edge), as a collision's."""
-    from carrt.episodes import format as fmt
-
-    steps = ep.steps
-    override = np.asarray(steps["override"], dtype=bool)
+    override = np.asarray(ep.steps["override"], dtype=bool)
     edges = np.flatnonzero(override & ~np.concatenate(([False], override[:-1])))
-    t = np.asarray(steps["frame_captured_at"], dtype=np.float64)
-    labels = np.zeros(len(override), dtype=np.uint8)
-    for k in edges:
-        labels[(t > t[k] - fmt.COLLISION_WINDOW_S + fmt.WINDOW_TOLERANCE_S) & (t <= t[k])] = 1
-    return labels
+    return labels_before(np.asarray(ep.steps["frame_captured_at"], dtype=np.float64), edges)
 
 
 @torch.no_grad()

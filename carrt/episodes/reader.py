@@ -170,9 +170,15 @@ def collision_events(steps: np.ndarray, end_reason: str | None = None) -> np.nda
 
 def collision_labels(steps: np.ndarray, end_reason: str | None = None) -> np.ndarray:
     """c = 1 for every step captured in (t_k − 0.5 s, t_k] of an event at step k (the paper)."""
-    labels = np.zeros(len(steps), dtype=np.uint8)
     t = steps["frame_captured_at"] if len(steps) else np.zeros(0)
-    for k in collision_events(steps, end_reason):
+    return labels_before(t, collision_events(steps, end_reason))
+
+
+def labels_before(t: np.ndarray, events: Iterable[int]) -> np.ndarray:
+    """1 for every step whose capture time lies in (t_k − 0.5 s, t_k] of an event step k: the
+    paper's collision window, which training also puts before a person's take-over."""
+    labels = np.zeros(len(t), dtype=np.uint8)
+    for k in events:
         tk = t[k]
         labels[(t > tk - fmt.COLLISION_WINDOW_S + fmt.WINDOW_TOLERANCE_S) & (t <= tk)] = 1
     return labels
