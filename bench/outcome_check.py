@@ -36,11 +36,14 @@ import numpy as np
 
 from bench.dirl_sim import StudyConfig, usable_cores
 from bench.dirl_steps import ROOT, demonstrations, evaluate, iterate_cmd, iteration_drives
+from bench.dirl_table import cell
 from bench.study_steps import StudyStep, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
 
 ARMS = {"outcomes": "true", "uniform": "false"}  # arm → outcome_advantage
+# the driving columns of the first table and their formats
+METRICS = (("completion_ratio", ".2f"), ("collisions_per_min", ".1f"), ("average_speed", ".2f"))
 
 
 @dataclass
@@ -117,16 +120,11 @@ def report(rows: list[dict]) -> str:
     lines = ["| model | seeds | completion | collisions / min | avg m/s |", "|---|---|---|---|---|"]
     for model in dict.fromkeys(r["model"] for r in rows):
         runs = [run for r in rows if r["model"] == model for run in r["runs"]]
-
-        def cell(key: str, fmt: str, runs=runs) -> str:
-            v = np.array([run[key] for run in runs], dtype=float)
-            return f"{format(v.mean(), fmt)} ± {format(v.std(), fmt)}"
-
         seeds = sum(r["model"] == model for r in rows)
-        completion, collisions = cell("completion_ratio", ".2f"), cell("collisions_per_min", ".1f")
-        lines.append(
-            f"| {model} | {seeds} | {completion} | {collisions} | {cell('average_speed', '.2f')} |"
+        completion, collisions, speed = (
+            cell([run[key] for run in runs], fmt) for key, fmt in METRICS
         )
+        lines.append(f"| {model} | {seeds} | {completion} | {collisions} | {speed} |")
     lines += [
         "",
         "| model | against | Δ completion, mean ± std over seeds | per seed (± paired SE) "
@@ -139,15 +137,13 @@ def report(rows: list[dict]) -> str:
         coll = paired(rows, model, base, "collisions_per_min")
         if not comp:
             continue
-
-        def spread(p, fmt):
-            m = np.array([d for _, d, _ in p])
-            return f"{format(m.mean(), fmt)} ± {format(m.std(), fmt.lstrip('+'))}"
-
         each = ", ".join(f"{d:+.2f} ± {se:.2f}" for _, d, se in comp)
         each_c = ", ".join(f"{d:+.1f} ± {se:.1f}" for _, d, se in coll)
-        lines.append(f"| {model} | {base} | {spread(comp, '+.3f')} | {each} "
-                     f"| {spread(coll, '+.2f')} | {each_c} |")  # fmt: skip
+        mean_comp, mean_coll = (
+            cell([d for _, d, _ in comp], "+.3f"),
+            cell([d for _, d, _ in coll], "+.2f"),
+        )
+        lines.append(f"| {model} | {base} | {mean_comp} | {each} | {mean_coll} | {each_c} |")
     return "\n".join(lines)
 
 
