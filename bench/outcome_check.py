@@ -2,6 +2,7 @@
 
     python -m bench.outcome_check                       # σ 0, iteration 1, seeds 0-2 (~1 h here)
     python -m bench.outcome_check --set seeds=0 --set outcome_steps=200
+    python -m bench.outcome_check --set outcome_iterations=2 --set eval_tracks=200-259
 
 The study's σ 0 chain up to DIRL iteration 1's imitation (bench/dirl_sim.py, its settings and
 its commands): demonstrations, IL, the iteration's drives (exploration noise, every crash
@@ -14,6 +15,11 @@ equal:
   a cross-fitted ridge baseline on the policy's features);
 - "uniform": the same windows, every one weighted 1 (`outcome_advantage=false`): imitation of
   the noisy drives with no outcome in it, which says whether the advantage carries the signal.
+
+With `outcome_iterations` k > 1, "outcomes<k>": the previous iteration's outcomes policy drives
+the training placements (exploration and take-overs, as iteration 1's drives) and is refined
+again the same way on every drive so far: the DIRL loop with recorded outcomes in place of
+imagination.
 
 Every policy is driven on the held-out placements (100-199 × 30 s, as the study); the table
 pairs each arm with imitated seed by seed (each seed's difference ± its paired standard error
@@ -57,6 +63,10 @@ class CheckConfig:
     outcome_batch: int = 64  # the imitation batch of the cpu profile
     outcome_w_imitation: float = 1.0  # imitation's L1 on the demonstrations beside it
     outcome_temperature: float = 1.0  # τ of the advantage weights
+    outcome_iterations: int = 1  # refinement from outcomes, iterations (≥ 2 drives again)
+    # where every policy is judged: the study's held-out test placements; choices between
+    # settings are made on validation placements (200-259) and only then judged here
+    eval_tracks: str = "100-199"
     parallel: int = 2
     study: StudyConfig = field(default_factory=StudyConfig)
 
@@ -93,12 +103,25 @@ def chain(cfg: CheckConfig, step: StudyStep, seed: int, rows: list[dict]) -> Non
         step(f"train-{tag}-{arm}", iterate_cmd(study, data, run, "--seed", str(seed), "--init",
              str(imitated), *arm_flags(cfg, advantage)), run / ".done")  # fmt: skip
         models[arm] = run
+    previous = runs / "outcomes"
+    for k in range(2, cfg.outcome_iterations + 1):
+        data += iteration_drives(study, step, tag, 0.0, k, previous)
+        run = runs / f"outcomes{k}"
+        step(f"train-{tag}-outcomes{k}", iterate_cmd(study, data, run, "--seed", str(seed),
+             "--init", str(previous), *arm_flags(cfg, "true")), run / ".done")  # fmt: skip
+        models[f"outcomes{k}"] = previous = run
     for model, run in models.items():
-        out = evaluate(study, step, f"{tag}-{model}", run / "policy.onnx", run / "eval.json")
+        result = run / f"eval{suffix(cfg)}.json"
+        out = evaluate(study, step, f"{tag}-{model}{suffix(cfg)}", run / "policy.onnx", result)
         diagnostics = run / "outcomes.json"
         rows.append({"model": model, "seed": seed, "run": str(run), "runs": out["runs"],
                      "outcomes": json.loads(diagnostics.read_text())
                      if diagnostics.is_file() else None})  # fmt: skip
+
+
+def suffix(cfg: CheckConfig) -> str:
+    """Nothing for the test placements; "-<tracks>" for others (their results kept apart)."""
+    return "" if cfg.eval_tracks == "100-199" else f"-{cfg.eval_tracks}"
 
 
 def paired(rows: list[dict], model: str, base: str, key: str) -> list[tuple[int, float, float]]:
@@ -131,8 +154,11 @@ def report(rows: list[dict]) -> str:
         "| Δ collisions / min | per seed |",
         "|---|---|---|---|---|---|",
     ]
-    for model, base in (("outcomes", "imitated"), ("uniform", "imitated"),
-                        ("outcomes", "uniform"), ("imitated", "IL")):  # fmt: skip
+    later = sorted({r["model"] for r in rows if r["model"].startswith("outcomes")} - {"outcomes"})
+    pairs = [("outcomes", "imitated"), ("uniform", "imitated"), ("outcomes", "uniform"),
+             ("imitated", "IL"), ("outcomes", "IL")]  # fmt: skip
+    pairs += [(m, b) for m in later for b in ("outcomes", "imitated", "IL")]
+    for model, base in pairs:
         comp = paired(rows, model, base, "completion_ratio")
         coll = paired(rows, model, base, "collisions_per_min")
         if not comp:
@@ -163,8 +189,11 @@ def parse(argv: list[str] | None) -> CheckConfig:
     if cfg.parallel < 1:
         p.error(f"parallel: {cfg.parallel} (1 or more)")
     cores = usable_cores()
+    if cfg.outcome_iterations < 1:
+        p.error(f"outcome_iterations: {cfg.outcome_iterations} (1 or more)")
     study = dataclasses.replace(cfg.study, out=cfg.out, seeds=cfg.seeds, demo_noise=(0.0,),
-                                parallel=cfg.parallel, threads=cores, jobs=cores)  # fmt: skip
+                                parallel=cfg.parallel, threads=cores, jobs=cores,
+                                eval_tracks=cfg.eval_tracks)  # fmt: skip
     return dataclasses.replace(cfg, study=study)
 
 
@@ -173,18 +202,20 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    kinds = {"demos": 1, "train il": len(cfg.seeds), "drive": len(cfg.seeds),
-             "takeovers": len(cfg.seeds), "train dirl": 3 * len(cfg.seeds),
-             "eval": 4 * len(cfg.seeds)}  # fmt: skip
+    n, k = len(cfg.seeds), cfg.outcome_iterations
+    kinds = {"demos": 1, "train il": n, "drive": k * n, "takeovers": k * n,
+             "train imitated": n, "train outcomes": k * n, "train uniform": n,
+             "eval": (3 + k) * n}  # fmt: skip
     step = StudyStep(out, kinds, parallel=cfg.parallel, cwd=ROOT)
     demonstrations(cfg.study, step, 0.0, cfg.study.train_tracks, "expert")
     rows, _ = run_chains([functools.partial(chain, cfg, step, s) for s in cfg.seeds])
     text = report(rows)
     results = {"config": dataclasses.asdict(cfg), "rows": rows,
                "wall_s": time.monotonic() - started}  # fmt: skip
-    (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
-    (out / "table.md").write_text(text + "\n")
-    print("\n" + text + f"\n\nwritten: {out / 'results.json'}, {out / 'table.md'}")
+    results_file, table_file = out / f"results{suffix(cfg)}.json", out / f"table{suffix(cfg)}.md"
+    results_file.write_text(json.dumps(results, indent=1) + "\n")
+    table_file.write_text(text + "\n")
+    print("\n" + text + f"\n\nwritten: {results_file}, {table_file}")
     return 0
 
 

@@ -51,3 +51,31 @@ def test_a_bad_setting_is_refused_in_one_line(capsys):
         outcome_check.parse(["--set", "parallel=0"])
     assert stop.value.code == 2
     assert "parallel: 0" in capsys.readouterr().err.strip().splitlines()[-1]
+
+
+def test_later_iterations_drive_the_previous_outcomes_policy_and_refine_it_again(
+    monkeypatch, tmp_path
+):
+    cfg = outcome_check.parse(["--set", f"out={tmp_path}", "--set", "outcome_iterations=3",
+                               "--set", "eval_tracks=200-259", "--set", "seeds=0"])  # fmt: skip
+    steps, judged = [], []
+    monkeypatch.setattr(
+        outcome_check, "evaluate",
+        lambda study, step, name, onnx, result: judged.append((name, result)) or {"runs": []},
+    )  # fmt: skip
+    outcome_check.chain(cfg, lambda name, argv, marker: steps.append((name, argv)), 0, [])
+    argv = dict(steps)
+    runs = tmp_path / "runs" / "seed0"
+    # iteration 2 drives with iteration 1's outcomes policy, iteration 3 with iteration 2's
+    assert str(runs / "outcomes" / "policy.onnx") in argv["drive-noise0-seed0-iter2"]
+    assert str(runs / "outcomes2" / "policy.onnx") in argv["drive-noise0-seed0-iter3"]
+    third = argv["train-noise0-seed0-outcomes3"]
+    assert third[third.index("--init") + 1] == str(runs / "outcomes2")
+    # and learns from every drive so far, with the arm's own settings
+    for k in (1, 2, 3):
+        assert str(tmp_path / "data" / f"drives-noise0-seed0-iter{k}") in third
+    assert "outcome_advantage=true" in third and "refine_outcomes=true" in third
+    # validation placements are judged apart from the test placements' results
+    assert ("eval" not in [r.stem for _, r in judged]) and len(judged) == 6
+    assert {r.name for _, r in judged} == {"eval-200-259.json"}
+    assert cfg.study.eval_tracks == "200-259"
