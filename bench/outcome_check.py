@@ -41,7 +41,15 @@ from pathlib import Path
 import numpy as np
 
 from bench.dirl_sim import StudyConfig, usable_cores
-from bench.dirl_steps import ROOT, demonstrations, evaluate, iterate_cmd, iteration_drives
+from bench.dirl_steps import (
+    ROOT,
+    demonstrations,
+    evaluate,
+    frames_in,
+    iterate_cmd,
+    iteration_drives,
+    top_up,
+)
 from bench.dirl_table import cell
 from bench.study_steps import StudyStep, run_chains
 from carrt.errors import UserError
@@ -64,6 +72,9 @@ class CheckConfig:
     outcome_w_imitation: float = 1.0  # imitation's L1 on the demonstrations beside it
     outcome_temperature: float = 1.0  # τ of the advantage weights
     outcome_iterations: int = 1  # refinement from outcomes, iterations (≥ 2 drives again)
+    # "IL-equal<k>": imitation on the demonstrations plus the study's second pool (extra_tracks)
+    # topped up to the frames the last outcomes iteration learnt from (the paper's comparison)
+    il_equal: bool = True
     # where every policy is judged: the study's held-out test placements; choices between
     # settings are made on validation placements (200-259) and only then judged here
     eval_tracks: str = "100-199"
@@ -97,26 +108,38 @@ def chain(cfg: CheckConfig, step: StudyStep, seed: int, rows: list[dict]) -> Non
     step(f"train-{tag}-imitated", iterate_cmd(study, data, imitated, "--seed", str(seed),
          "--init", str(il), *again, "--set", "world_model_steps=0", "--set", "refine_steps=0"),
          imitated / ".done")  # fmt: skip
-    models = {"IL": il, "imitated": imitated}
+    models = {"IL": (il, [expert]), "imitated": (imitated, data)}  # model → (run, its data)
     for arm, advantage in ARMS.items():
         run = runs / arm
         step(f"train-{tag}-{arm}", iterate_cmd(study, data, run, "--seed", str(seed), "--init",
              str(imitated), *arm_flags(cfg, advantage)), run / ".done")  # fmt: skip
-        models[arm] = run
-    previous = runs / "outcomes"
-    for k in range(2, cfg.outcome_iterations + 1):
-        data += iteration_drives(study, step, tag, 0.0, k, previous)
-        run = runs / f"outcomes{k}"
-        step(f"train-{tag}-outcomes{k}", iterate_cmd(study, data, run, "--seed", str(seed),
+        models[arm] = (run, data)
+    previous, k = runs / "outcomes", cfg.outcome_iterations
+    for i in range(2, k + 1):
+        data = [*data, *iteration_drives(study, step, tag, 0.0, i, previous)]
+        run = runs / outcomes_model(i)
+        step(f"train-{tag}-{run.name}", iterate_cmd(study, data, run, "--seed", str(seed),
              "--init", str(previous), *arm_flags(cfg, "true")), run / ".done")  # fmt: skip
-        models[f"outcomes{k}"] = previous = run
-    for model, run in models.items():
+        models[run.name], previous = (run, data), run
+    if cfg.il_equal:
+        extra = Path(cfg.out) / "data" / "extra-noise0"
+        equal = [expert, *top_up(extra, frames_in(data) - frames_in([expert]))]
+        il_eq = runs / f"il-equal{k}"
+        step(f"train-{tag}-il-equal{k}", iterate_cmd(study, equal, il_eq, *imitation),
+             il_eq / ".done")  # fmt: skip
+        models[f"IL-equal{k}"] = (il_eq, equal)
+    for model, (run, used) in models.items():
         result = run / f"eval{suffix(cfg)}.json"
         out = evaluate(study, step, f"{tag}-{model}{suffix(cfg)}", run / "policy.onnx", result)
         diagnostics = run / "outcomes.json"
-        rows.append({"model": model, "seed": seed, "run": str(run), "runs": out["runs"],
-                     "outcomes": json.loads(diagnostics.read_text())
+        rows.append({"model": model, "seed": seed, "run": str(run), "frames": frames_in(used),
+                     "runs": out["runs"], "outcomes": json.loads(diagnostics.read_text())
                      if diagnostics.is_file() else None})  # fmt: skip
+
+
+def outcomes_model(k: int) -> str:
+    """The outcomes arm's name at iteration k: "outcomes", "outcomes2", …"""
+    return "outcomes" if k == 1 else f"outcomes{k}"
 
 
 def suffix(cfg: CheckConfig) -> str:
@@ -140,24 +163,30 @@ def paired(rows: list[dict], model: str, base: str, key: str) -> list[tuple[int,
 
 
 def report(rows: list[dict]) -> str:
-    lines = ["| model | seeds | completion | collisions / min | avg m/s |", "|---|---|---|---|---|"]
+    lines = ["| model | seeds | frames | completion | collisions / min | avg m/s |",
+             "|---|---|---|---|---|---|"]  # fmt: skip
     for model in dict.fromkeys(r["model"] for r in rows):
-        runs = [run for r in rows if r["model"] == model for run in r["runs"]]
-        seeds = sum(r["model"] == model for r in rows)
+        mine = [r for r in rows if r["model"] == model]
+        runs = [run for r in mine for run in r["runs"]]
+        frames = [r["frames"] for r in mine if "frames" in r]
+        shown = f"{np.mean(frames):,.0f}" if frames else "–"
         completion, collisions, speed = (
             cell([run[key] for run in runs], fmt) for key, fmt in METRICS
         )
-        lines.append(f"| {model} | {seeds} | {completion} | {collisions} | {speed} |")
+        lines.append(f"| {model} | {len(mine)} | {shown} | {completion} | {collisions} | {speed} |")
     lines += [
         "",
         "| model | against | Δ completion, mean ± std over seeds | per seed (± paired SE) "
         "| Δ collisions / min | per seed |",
         "|---|---|---|---|---|---|",
     ]
-    later = sorted({r["model"] for r in rows if r["model"].startswith("outcomes")} - {"outcomes"})
+    names = {r["model"] for r in rows}
+    later = sorted(m for m in names if m.startswith("outcomes") and m != "outcomes")
     pairs = [("outcomes", "imitated"), ("uniform", "imitated"), ("outcomes", "uniform"),
              ("imitated", "IL"), ("outcomes", "IL")]  # fmt: skip
     pairs += [(m, b) for m in later for b in ("outcomes", "imitated", "IL")]
+    equal = sorted(m for m in names if m.startswith("IL-equal"))
+    pairs += [(outcomes_model(int(m.removeprefix("IL-equal"))), m) for m in equal]
     for model, base in pairs:
         comp = paired(rows, model, base, "completion_ratio")
         coll = paired(rows, model, base, "collisions_per_min")
@@ -203,11 +232,14 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     n, k = len(cfg.seeds), cfg.outcome_iterations
-    kinds = {"demos": 1, "train il": n, "drive": k * n, "takeovers": k * n,
-             "train imitated": n, "train outcomes": k * n, "train uniform": n,
-             "eval": (3 + k) * n}  # fmt: skip
+    kinds = {"demos": 1 + cfg.il_equal, "train il": n, "train il-equal": n * cfg.il_equal,
+             "drive": k * n, "takeovers": k * n, "train imitated": n, "train outcomes": k * n,
+             "train uniform": n,
+             "eval": (3 + k + cfg.il_equal) * n}  # fmt: skip
     step = StudyStep(out, kinds, parallel=cfg.parallel, cwd=ROOT)
     demonstrations(cfg.study, step, 0.0, cfg.study.train_tracks, "expert")
+    if cfg.il_equal:
+        demonstrations(cfg.study, step, 0.0, cfg.study.extra_tracks, "extra")
     rows, _ = run_chains([functools.partial(chain, cfg, step, s) for s in cfg.seeds])
     text = report(rows)
     results = {"config": dataclasses.asdict(cfg), "rows": rows,

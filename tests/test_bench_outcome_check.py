@@ -63,7 +63,13 @@ def test_later_iterations_drive_the_previous_outcomes_policy_and_refine_it_again
         outcome_check, "evaluate",
         lambda study, step, name, onnx, result: judged.append((name, result)) or {"runs": []},
     )  # fmt: skip
-    outcome_check.chain(cfg, lambda name, argv, marker: steps.append((name, argv)), 0, [])
+    # every episode directory holds 1,000 frames; the second pool is handed out 1,000 at a time
+    monkeypatch.setattr(outcome_check, "frames_in", lambda paths: 1000 * len(paths))
+    monkeypatch.setattr(
+        outcome_check, "top_up", lambda pool, frames: [pool / f"{i}" for i in range(frames // 1000)]
+    )
+    rows = []
+    outcome_check.chain(cfg, lambda name, argv, marker: steps.append((name, argv)), 0, rows)
     argv = dict(steps)
     runs = tmp_path / "runs" / "seed0"
     # iteration 2 drives with iteration 1's outcomes policy, iteration 3 with iteration 2's
@@ -76,6 +82,22 @@ def test_later_iterations_drive_the_previous_outcomes_policy_and_refine_it_again
         assert str(tmp_path / "data" / f"drives-noise0-seed0-iter{k}") in third
     assert "outcome_advantage=true" in third and "refine_outcomes=true" in third
     # validation placements are judged apart from the test placements' results
-    assert ("eval" not in [r.stem for _, r in judged]) and len(judged) == 6
+    # IL at equal frames: the demonstrations topped up to outcomes3's 7 directories' frames
+    frames = {r["model"]: r["frames"] for r in rows}
+    assert frames["outcomes3"] == frames["IL-equal3"] == 7000 and frames["IL"] == 1000
+    equal = argv["train-noise0-seed0-il-equal3"]
+    assert str(tmp_path / "data" / "extra-noise0" / "5") in equal and "--init" not in equal
+    assert ("eval" not in [r.stem for _, r in judged]) and len(judged) == 7
     assert {r.name for _, r in judged} == {"eval-200-259.json"}
     assert cfg.study.eval_tracks == "200-259"
+
+
+def test_each_outcomes_iteration_is_paired_with_imitation_at_its_frames():
+    rows = [
+        {**_row("outcomes2", 0, [0.9, 0.8]), "frames": 35000},
+        {**_row("IL-equal2", 0, [0.7, 0.8]), "frames": 35100},
+        _row("IL", 0, [0.6, 0.6]),
+    ]
+    table = outcome_check.report(rows)
+    assert "| outcomes2 | IL-equal2 | +0.100 |" in table, table
+    assert "| IL-equal2 | 1 | 35,100 |" in table and "| IL | 1 | – |" in table, table
