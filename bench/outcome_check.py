@@ -78,6 +78,7 @@ class CheckConfig:
     # where every policy is judged: the study's held-out test placements; choices between
     # settings are made on validation placements (200-259) and only then judged here
     eval_tracks: str = "100-199"
+    demo_noise: tuple[float, ...] = (0.0,)  # σ of the demonstrations (the paper's 0, 0.5, 1.0)
     parallel: int = 2
     study: StudyConfig = field(default_factory=StudyConfig)
 
@@ -91,17 +92,18 @@ def arm_flags(cfg: CheckConfig, advantage: str) -> list[str]:
     return [arg for s in sets for arg in ("--set", s)]
 
 
-def chain(cfg: CheckConfig, step: StudyStep, seed: int, rows: list[dict]) -> None:
-    """IL → drives → imitated → each arm, every policy evaluated, for one seed."""
+def chain(cfg: CheckConfig, step: StudyStep, sigma: float, seed: int, rows: list[dict]) -> None:
+    """IL → drives → imitated → each arm, every policy evaluated, for one demonstration noise
+    and seed (the uniform control at σ 0 only: the question it answers is not the noise's)."""
     study = cfg.study
-    tag = f"noise0-seed{seed}"
-    runs = Path(cfg.out) / "runs" / f"seed{seed}"
-    expert = Path(cfg.out) / "data" / "expert-noise0"
+    tag = f"noise{sigma:g}-seed{seed}"
+    runs = Path(cfg.out) / "runs" / tag
+    expert = Path(cfg.out) / "data" / f"expert-noise{sigma:g}"
     imitation = ["--seed", str(seed), "--set", f"imitation_steps={study.imitation_steps}",
                  "--set", "world_model_steps=0", "--set", "refine_steps=0"]  # fmt: skip
     il = runs / "il"
     step(f"train-{tag}-il", iterate_cmd(study, [expert], il, *imitation), il / ".done")
-    data = [expert, *iteration_drives(study, step, tag, 0.0, 1, il)]
+    data = [expert, *iteration_drives(study, step, tag, sigma, 1, il)]
     imitated = runs / "imitated"
     again = ["--set", "reimitate=true", "--set", f"imitation_steps={study.reimitate_steps}",
              "--set", f"imitation_lr={study.reimitate_lr}"]  # fmt: skip
@@ -109,20 +111,20 @@ def chain(cfg: CheckConfig, step: StudyStep, seed: int, rows: list[dict]) -> Non
          "--init", str(il), *again, "--set", "world_model_steps=0", "--set", "refine_steps=0"),
          imitated / ".done")  # fmt: skip
     models = {"IL": (il, [expert]), "imitated": (imitated, data)}  # model → (run, its data)
-    for arm, advantage in ARMS.items():
+    for arm, advantage in ARMS.items() if sigma == 0 else [("outcomes", ARMS["outcomes"])]:
         run = runs / arm
         step(f"train-{tag}-{arm}", iterate_cmd(study, data, run, "--seed", str(seed), "--init",
              str(imitated), *arm_flags(cfg, advantage)), run / ".done")  # fmt: skip
         models[arm] = (run, data)
     previous, k = runs / "outcomes", cfg.outcome_iterations
     for i in range(2, k + 1):
-        data = [*data, *iteration_drives(study, step, tag, 0.0, i, previous)]
+        data = [*data, *iteration_drives(study, step, tag, sigma, i, previous)]
         run = runs / outcomes_model(i)
         step(f"train-{tag}-{run.name}", iterate_cmd(study, data, run, "--seed", str(seed),
              "--init", str(previous), *arm_flags(cfg, "true")), run / ".done")  # fmt: skip
         models[run.name], previous = (run, data), run
     if cfg.il_equal:
-        extra = Path(cfg.out) / "data" / "extra-noise0"
+        extra = Path(cfg.out) / "data" / f"extra-noise{sigma:g}"
         equal = [expert, *top_up(extra, frames_in(data) - frames_in([expert]))]
         il_eq = runs / f"il-equal{k}"
         step(f"train-{tag}-il-equal{k}", iterate_cmd(study, equal, il_eq, *imitation),
@@ -132,7 +134,8 @@ def chain(cfg: CheckConfig, step: StudyStep, seed: int, rows: list[dict]) -> Non
         result = run / f"eval{suffix(cfg)}.json"
         out = evaluate(study, step, f"{tag}-{model}{suffix(cfg)}", run / "policy.onnx", result)
         diagnostics = run / "outcomes.json"
-        rows.append({"model": model, "seed": seed, "run": str(run), "frames": frames_in(used),
+        rows.append({"model": model, "demo_noise": sigma, "seed": seed, "run": str(run),
+                     "frames": frames_in(used),
                      "runs": out["runs"], "outcomes": json.loads(diagnostics.read_text())
                      if diagnostics.is_file() else None})  # fmt: skip
 
@@ -220,7 +223,10 @@ def parse(argv: list[str] | None) -> CheckConfig:
     cores = usable_cores()
     if cfg.outcome_iterations < 1:
         p.error(f"outcome_iterations: {cfg.outcome_iterations} (1 or more)")
-    study = dataclasses.replace(cfg.study, out=cfg.out, seeds=cfg.seeds, demo_noise=(0.0,),
+    if any(not 0 <= s < 10 for s in cfg.demo_noise) or not cfg.demo_noise:
+        p.error(f"demo_noise: {cfg.demo_noise} (one or more σ in [0, 10))")
+    study = dataclasses.replace(cfg.study, out=cfg.out, seeds=cfg.seeds,
+                                demo_noise=cfg.demo_noise,
                                 parallel=cfg.parallel, threads=cores, jobs=cores,
                                 eval_tracks=cfg.eval_tracks)  # fmt: skip
     return dataclasses.replace(cfg, study=study)
@@ -231,17 +237,24 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    n, k = len(cfg.seeds), cfg.outcome_iterations
-    kinds = {"demos": 1 + cfg.il_equal, "train il": n, "train il-equal": n * cfg.il_equal,
-             "drive": k * n, "takeovers": k * n, "train imitated": n, "train outcomes": k * n,
-             "train uniform": n,
-             "eval": (3 + k + cfg.il_equal) * n}  # fmt: skip
+    noises, k = len(cfg.demo_noise), cfg.outcome_iterations
+    n, control = noises * len(cfg.seeds), len(cfg.seeds) * (0.0 in cfg.demo_noise)
+    kinds = {"demos": noises * (1 + cfg.il_equal), "train il": n,
+             "train il-equal": n * cfg.il_equal, "drive": k * n, "takeovers": k * n,
+             "train imitated": n, "train outcomes": k * n, "train uniform": control,
+             "eval": (2 + k + cfg.il_equal) * n + control}  # fmt: skip
     step = StudyStep(out, kinds, parallel=cfg.parallel, cwd=ROOT)
-    demonstrations(cfg.study, step, 0.0, cfg.study.train_tracks, "expert")
-    if cfg.il_equal:
-        demonstrations(cfg.study, step, 0.0, cfg.study.extra_tracks, "extra")
-    rows, _ = run_chains([functools.partial(chain, cfg, step, s) for s in cfg.seeds])
-    text = report(rows)
+    for sigma in cfg.demo_noise:
+        demonstrations(cfg.study, step, sigma, cfg.study.train_tracks, "expert")
+        if cfg.il_equal:
+            demonstrations(cfg.study, step, sigma, cfg.study.extra_tracks, "extra")
+    rows, _ = run_chains([functools.partial(chain, cfg, step, sigma, s)
+                          for sigma in cfg.demo_noise for s in cfg.seeds])  # fmt: skip
+    text = "\n\n".join(
+        f"Demonstration noise σ {sigma:g}:\n\n"
+        + report([r for r in rows if r.get("demo_noise", 0.0) == sigma])
+        for sigma in cfg.demo_noise
+    )
     results = {"config": dataclasses.asdict(cfg), "rows": rows,
                "wall_s": time.monotonic() - started}  # fmt: skip
     results_file, table_file = out / f"results{suffix(cfg)}.json", out / f"table{suffix(cfg)}.md"

@@ -69,9 +69,9 @@ def test_later_iterations_drive_the_previous_outcomes_policy_and_refine_it_again
         outcome_check, "top_up", lambda pool, frames: [pool / f"{i}" for i in range(frames // 1000)]
     )
     rows = []
-    outcome_check.chain(cfg, lambda name, argv, marker: steps.append((name, argv)), 0, rows)
+    outcome_check.chain(cfg, lambda name, argv, marker: steps.append((name, argv)), 0.0, 0, rows)
     argv = dict(steps)
-    runs = tmp_path / "runs" / "seed0"
+    runs = tmp_path / "runs" / "noise0-seed0"
     # iteration 2 drives with iteration 1's outcomes policy, iteration 3 with iteration 2's
     assert str(runs / "outcomes" / "policy.onnx") in argv["drive-noise0-seed0-iter2"]
     assert str(runs / "outcomes2" / "policy.onnx") in argv["drive-noise0-seed0-iter3"]
@@ -101,3 +101,23 @@ def test_each_outcomes_iteration_is_paired_with_imitation_at_its_frames():
     table = outcome_check.report(rows)
     assert "| outcomes2 | IL-equal2 | +0.100 |" in table, table
     assert "| IL-equal2 | 1 | 35,100 |" in table and "| IL | 1 | – |" in table, table
+
+
+def test_noisy_demonstrations_get_their_own_chain_without_the_control(monkeypatch, tmp_path):
+    cfg = outcome_check.parse(["--set", f"out={tmp_path}", "--set", "demo_noise=0,1.0"])
+    steps = []
+    monkeypatch.setattr(outcome_check, "evaluate", lambda *a: {"runs": []})
+    monkeypatch.setattr(outcome_check, "frames_in", lambda paths: 1000 * len(paths))
+    monkeypatch.setattr(outcome_check, "top_up", lambda pool, frames: [pool / "0", pool / "1"])
+    rows = []
+    outcome_check.chain(cfg, lambda name, argv, marker: steps.append((name, argv)), 1.0, 2, rows)
+    argv = dict(steps)
+    assert str(tmp_path / "data" / "expert-noise1") in argv["train-noise1-seed2-il"]
+    # the expert's take-overs carry the demonstrations' noise
+    takeovers = argv["takeovers-noise1-seed2-iter1"]
+    assert takeovers[takeovers.index("--noise") + 1] == "1.0"
+    assert not any("uniform" in name for name in argv)
+    assert {r["model"] for r in rows} == {"IL", "imitated", "outcomes", "IL-equal1"}
+    assert {r["demo_noise"] for r in rows} == {1.0}
+    with pytest.raises(SystemExit):
+        outcome_check.parse(["--set", "demo_noise=nan"])
