@@ -1,31 +1,36 @@
 """Refinement from real outcomes, judged by driving: does it beat the policy it refines?
 
-    python -m bench.outcome_check                       # σ 0, iteration 1, seeds 0-2 (~1 h here)
+    python -m bench.outcome_check                       # σ 0, two rounds, seeds 0-2 (~40 min here)
     python -m bench.outcome_check --set seeds=0 --set outcome_steps=200
-    python -m bench.outcome_check --set outcome_iterations=2 --set eval_tracks=200-259
+    python -m bench.outcome_check --set outcome_iterations=3 --set eval_tracks=200-259
+    python -m bench.outcome_check --set demo_noise=1.0
 
-The study's σ 0 chain up to DIRL iteration 1's imitation (bench/dirl_sim.py, its settings and
-its commands): demonstrations, IL, the iteration's drives (exploration noise, every crash
-labelled) and take-overs, the previous policy imitating again on every labelled frame
-("imitated", the policy the study's selection keeps unless refinement beats it). Then, from
-imitated, `refine_outcomes` (training/refine_outcomes.py) in two arms with everything else
-equal:
+The study's chain (per demonstration noise σ, `demo_noise`, and seed) up to DIRL iteration 1's
+imitation (bench/dirl_sim.py, its settings and its commands): demonstrations, IL, the
+iteration's drives (exploration noise, every crash labelled) and take-overs, the previous
+policy imitating again on every labelled frame ("imitated", the policy the study's selection
+keeps unless refinement beats it). Then, from imitated, `refine_outcomes`
+(training/refine_outcomes.py) in two arms with everything else equal:
 
 - "outcomes": the executed actions of the drives weighted by their advantage (real return over
   a cross-fitted ridge baseline on the policy's features);
-- "uniform": the same windows, every one weighted 1 (`outcome_advantage=false`): imitation of
-  the noisy drives with no outcome in it, which says whether the advantage carries the signal.
+- "uniform" (σ 0 only): the same windows, every one weighted 1 (`outcome_advantage=false`):
+  imitation of the noisy drives with no outcome in it, which says whether the advantage
+  carries the signal.
 
 With `outcome_iterations` k > 1, "outcomes<k>": the previous iteration's outcomes policy drives
 the training placements (exploration and take-overs, as iteration 1's drives) and is refined
 again the same way on every drive so far: the DIRL loop with recorded outcomes in place of
-imagination.
+imagination. "IL-equal<k>" (`il_equal`) imitates the demonstrations topped up from the study's
+second pool to the last round's frames: the paper's comparison at equal data.
 
 Every policy is driven on the held-out placements (100-199 × 30 s, as the study); the table
 pairs each arm with imitated seed by seed (each seed's difference ± its paired standard error
-over the placements, then mean ± std over seeds). The arms' settings are fixed here, before
-any driving: none was tuned on the placements they are judged on. OUT/results.json holds
-every run and each arm's outcome diagnostics (baseline R², effective sample share).
+over the placements, then mean ± std over seeds). The arms' settings are fixed here, before any
+driving, and the number of rounds on validation placements (`eval_tracks=200-259`, their
+results in files of their own): none was tuned on the placements they are judged on.
+OUT/results.json holds every run and each arm's outcome diagnostics (baseline R², effective
+sample share).
 """
 
 from __future__ import annotations
@@ -71,7 +76,9 @@ class CheckConfig:
     outcome_batch: int = 64  # the imitation batch of the cpu profile
     outcome_w_imitation: float = 1.0  # imitation's L1 on the demonstrations beside it
     outcome_temperature: float = 1.0  # τ of the advantage weights
-    outcome_iterations: int = 1  # refinement from outcomes, iterations (≥ 2 drives again)
+    # rounds of refinement from outcomes (≥ 2 drives again); 2 drove best of 1-3 on validation
+    # placements 200-259 (docs/dirl_outcome_validation.json)
+    outcome_iterations: int = 2
     # "IL-equal<k>": imitation on the demonstrations plus the study's second pool (extra_tracks)
     # topped up to the frames the last outcomes iteration learnt from (the paper's comparison)
     il_equal: bool = True

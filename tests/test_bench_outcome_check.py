@@ -104,7 +104,8 @@ def test_each_outcomes_iteration_is_paired_with_imitation_at_its_frames():
 
 
 def test_noisy_demonstrations_get_their_own_chain_without_the_control(monkeypatch, tmp_path):
-    cfg = outcome_check.parse(["--set", f"out={tmp_path}", "--set", "demo_noise=0,1.0"])
+    cfg = outcome_check.parse(["--set", f"out={tmp_path}", "--set", "demo_noise=0,1.0",
+                               "--set", "outcome_iterations=1"])  # fmt: skip
     steps = []
     monkeypatch.setattr(outcome_check, "evaluate", lambda *a: {"runs": []})
     monkeypatch.setattr(outcome_check, "frames_in", lambda paths: 1000 * len(paths))
