@@ -84,7 +84,7 @@ class CheckConfig:
     il_equal: bool = True
     # where every policy is judged: the study's held-out test placements; choices between
     # settings are made on validation placements (200-259) and only then judged here
-    eval_tracks: str = "100-199"
+    eval_tracks: str = StudyConfig.eval_tracks
     demo_noise: tuple[float, ...] = (0.0,)  # σ of the demonstrations (the paper's 0, 0.5, 1.0)
     parallel: int = 2
     study: StudyConfig = field(default_factory=StudyConfig)
@@ -117,32 +117,35 @@ def chain(cfg: CheckConfig, step: StudyStep, sigma: float, seed: int, rows: list
     step(f"train-{tag}-imitated", iterate_cmd(study, data, imitated, "--seed", str(seed),
          "--init", str(il), *again, "--set", "world_model_steps=0", "--set", "refine_steps=0"),
          imitated / ".done")  # fmt: skip
-    models = {"IL": (il, [expert]), "imitated": (imitated, data)}  # model → (run, its data)
+    # model → (run, frames it learnt from); each data set's frames counted once
+    expert_frames, frames = frames_in([expert]), frames_in(data)
+    models = {"IL": (il, expert_frames), "imitated": (imitated, frames)}
     for arm, advantage in ARMS.items() if sigma == 0 else [("outcomes", ARMS["outcomes"])]:
         run = runs / arm
         step(f"train-{tag}-{arm}", iterate_cmd(study, data, run, "--seed", str(seed), "--init",
              str(imitated), *arm_flags(cfg, advantage)), run / ".done")  # fmt: skip
-        models[arm] = (run, data)
+        models[arm] = (run, frames)
     previous, k = runs / "outcomes", cfg.outcome_iterations
     for i in range(2, k + 1):
         data = [*data, *iteration_drives(study, step, tag, sigma, i, previous)]
+        frames = frames_in(data)
         run = runs / outcomes_model(i)
         step(f"train-{tag}-{run.name}", iterate_cmd(study, data, run, "--seed", str(seed),
              "--init", str(previous), *arm_flags(cfg, "true")), run / ".done")  # fmt: skip
-        models[run.name], previous = (run, data), run
+        models[run.name], previous = (run, frames), run
     if cfg.il_equal:
         extra = Path(cfg.out) / "data" / f"extra-noise{sigma:g}"
-        equal = [expert, *top_up(extra, frames_in(data) - frames_in([expert]))]
+        equal = [expert, *top_up(extra, frames - expert_frames)]
         il_eq = runs / f"il-equal{k}"
         step(f"train-{tag}-il-equal{k}", iterate_cmd(study, equal, il_eq, *imitation),
              il_eq / ".done")  # fmt: skip
-        models[f"IL-equal{k}"] = (il_eq, equal)
-    for model, (run, used) in models.items():
+        models[f"IL-equal{k}"] = (il_eq, frames_in(equal))
+    for model, (run, learnt_from) in models.items():
         result = run / f"eval{suffix(cfg)}.json"
         out = evaluate(study, step, f"{tag}-{model}{suffix(cfg)}", run / "policy.onnx", result)
         diagnostics = run / "outcomes.json"
         rows.append({"model": model, "demo_noise": sigma, "seed": seed, "run": str(run),
-                     "frames": frames_in(used),
+                     "frames": learnt_from,
                      "runs": out["runs"], "outcomes": json.loads(diagnostics.read_text())
                      if diagnostics.is_file() else None})  # fmt: skip
 
@@ -154,7 +157,7 @@ def outcomes_model(k: int) -> str:
 
 def suffix(cfg: CheckConfig) -> str:
     """Nothing for the test placements; "-<tracks>" for others (their results kept apart)."""
-    return "" if cfg.eval_tracks == "100-199" else f"-{cfg.eval_tracks}"
+    return "" if cfg.eval_tracks == StudyConfig.eval_tracks else f"-{cfg.eval_tracks}"
 
 
 def paired(rows: list[dict], model: str, base: str, key: str) -> list[tuple[int, float, float]]:
@@ -259,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
                           for sigma in cfg.demo_noise for s in cfg.seeds])  # fmt: skip
     text = "\n\n".join(
         f"Demonstration noise σ {sigma:g}:\n\n"
-        + report([r for r in rows if r.get("demo_noise", 0.0) == sigma])
+        + report([r for r in rows if r["demo_noise"] == sigma])
         for sigma in cfg.demo_noise
     )
     results = {"config": dataclasses.asdict(cfg), "rows": rows,

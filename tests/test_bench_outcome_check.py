@@ -81,12 +81,12 @@ def test_later_iterations_drive_the_previous_outcomes_policy_and_refine_it_again
     for k in (1, 2, 3):
         assert str(tmp_path / "data" / f"drives-noise0-seed0-iter{k}") in third
     assert "outcome_advantage=true" in third and "refine_outcomes=true" in third
-    # validation placements are judged apart from the test placements' results
     # IL at equal frames: the demonstrations topped up to outcomes3's 7 directories' frames
     frames = {r["model"]: r["frames"] for r in rows}
     assert frames["outcomes3"] == frames["IL-equal3"] == 7000 and frames["IL"] == 1000
     equal = argv["train-noise0-seed0-il-equal3"]
     assert str(tmp_path / "data" / "extra-noise0" / "5") in equal and "--init" not in equal
+    # validation placements are judged apart from the test placements' results
     assert ("eval" not in [r.stem for _, r in judged]) and len(judged) == 7
     assert {r.name for _, r in judged} == {"eval-200-259.json"}
     assert cfg.study.eval_tracks == "200-259"
