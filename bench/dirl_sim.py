@@ -67,13 +67,14 @@ from bench.dirl_steps import (
     demonstrations,
     evaluate,
     frames_in,
+    il_equal_data,
     iterate_cmd,
     iteration_drives,
     plan,
     refinement_method,
+    reimitate_flags,
     run_settings,
     select,
-    top_up,
 )
 from bench.dirl_table import (
     before_refinement,
@@ -293,9 +294,7 @@ def chain(
     row("IL", 0, il, [expert])
     data, previous = [expert], il
     expert_frames = frames_in([expert])  # read once: every iteration tops up against it
-    reimitate = cfg.reimitate_steps > 0
-    again = ["--set", "reimitate=true", "--set", f"imitation_steps={cfg.reimitate_steps}",
-             "--set", f"imitation_lr={cfg.reimitate_lr}"] if reimitate else []  # fmt: skip
+    reimitate, again = cfg.reimitate_steps > 0, reimitate_flags(cfg)
     for k in range(1, iterations + 1):
         data = [*data, *iteration_drives(cfg, step, tag, sigma, k, previous)]
         run = runs / f"dirl{k}"
@@ -319,9 +318,8 @@ def chain(
                      alt / ".done")  # fmt: skip
                 alt_policy = select(cfg, step, f"{tag}-{name}", k, alt, previous, data, imitated)
                 row(model, k, alt, data, alt_policy, refinement=alt_method)
-        # Imitation on as many frames as this iteration had, from the second demonstration
-        # pool (whole episodes in name order, so iteration k's set extends iteration k-1's).
-        equal = [expert, *top_up(extra, frames_in(data) - expert_frames)]
+        # Imitation on as many frames as this iteration had, from the second demonstration pool
+        equal = il_equal_data(expert, extra, expert_frames, frames_in(data))
         il_eq = runs / f"il-equal{k}"
         step(f"train-{tag}-il-equal{k}", iterate_cmd(cfg, equal, il_eq, *common, *imitation),
              il_eq / ".done")  # fmt: skip

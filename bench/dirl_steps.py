@@ -202,18 +202,52 @@ def iteration_drives(
     iteration drives with its own simulator seeds: an iteration that kept its start would
     otherwise record the same episodes again."""
     model = str(previous / "policy.onnx")
-    seeds = ("--seed-offset", str(DRIVE_SEED_STRIDE * (k - 1)))  # iteration 1: the placement
-    tracks = cfg.iteration_tracks[k - 1] if cfg.iteration_tracks else cfg.train_tracks
     drives = Path(cfg.out) / "data" / f"drives-{tag}-iter{k}"
     step(f"drive-{tag}-iter{k}", py("-m", "training.sim_data", "drives", "--model", model,
-         "--out", str(drives), "--tracks", tracks, "--layouts", cfg.layout,
+         "--out", str(drives), "--tracks", iteration_tracks(cfg, k), "--layouts", cfg.layout,
          "--seconds", str(cfg.drive_seconds), "--jobs", str(cfg.step_jobs()),
-         *seeds, *explore_args(cfg)), drives / ".done")  # fmt: skip
+         *drive_seeds(k), *explore_args(cfg)), drives / ".done")  # fmt: skip
     if not cfg.takeover_seconds:
         return [drives]
-    takeovers = Path(cfg.out) / "data" / f"takeovers-{tag}-iter{k}"
-    step(f"takeovers-{tag}-iter{k}", py("-m", "training.sim_data", "interventions", "--model",
-         model, "--out", str(takeovers), "--tracks", tracks, "--layouts", cfg.layout,
-         "--seconds", str(cfg.takeover_seconds), "--noise", str(sigma),
-         "--jobs", str(cfg.step_jobs()), *seeds), takeovers / ".done")  # fmt: skip
-    return [drives, takeovers]
+    return [drives, takeover_drives(cfg, step, tag, sigma, k, previous, cfg.takeover_seconds)]
+
+
+def takeover_drives(cfg: StudyConfig, step: StudyStep, tag: str, sigma: float, k: int,
+                    previous: Path, seconds: float, kind: str = "takeovers") -> Path:  # fmt: skip
+    """The previous policy drives iteration k's placements `seconds` each with the expert
+    taking over before a crash (`sim_data interventions`, the demonstrations' σ on the
+    expert's commands), into OUT/data/<kind>-<tag>-iter<k>: the labels in states the policy
+    reached that every real-car drive with an override records."""
+    takeovers = Path(cfg.out) / "data" / f"{kind}-{tag}-iter{k}"
+    label = f"iter{k}" if kind == "takeovers" else f"{kind}{k}"  # the step's (and log's) name
+    model = str(previous / "policy.onnx")
+    step(f"takeovers-{tag}-{label}", py("-m", "training.sim_data", "interventions",
+         "--model", model, "--out", str(takeovers), "--tracks", iteration_tracks(cfg, k),
+         "--layouts", cfg.layout, "--seconds", str(seconds), "--noise", str(sigma),
+         "--jobs", str(cfg.step_jobs()), *drive_seeds(k)), takeovers / ".done")  # fmt: skip
+    return takeovers
+
+
+def iteration_tracks(cfg: StudyConfig, k: int) -> str:
+    """Where iteration k drives: iteration_tracks' k-th entry, else the training placements."""
+    return cfg.iteration_tracks[k - 1] if cfg.iteration_tracks else cfg.train_tracks
+
+
+def drive_seeds(k: int) -> tuple[str, str]:
+    """Iteration k's simulator seeds (iteration 1: each placement's own)."""
+    return ("--seed-offset", str(DRIVE_SEED_STRIDE * (k - 1)))
+
+
+def reimitate_flags(cfg: StudyConfig) -> list[str]:
+    """iterate.py flags for imitation again from the previous policy on every labelled frame
+    (reimitate_steps at reimitate_lr; none when reimitate_steps is 0)."""
+    if not cfg.reimitate_steps:
+        return []
+    return ["--set", "reimitate=true", "--set", f"imitation_steps={cfg.reimitate_steps}",
+            "--set", f"imitation_lr={cfg.reimitate_lr}"]  # fmt: skip
+
+
+def il_equal_data(expert: Path, extra: Path, expert_frames: int, frames: int) -> list[Path]:
+    """IL at `frames`: the demonstrations plus whole episodes of the second pool `extra`, in
+    name order (so a larger count extends a smaller one's set), to at least `frames`."""
+    return [expert, *top_up(extra, frames - expert_frames)]

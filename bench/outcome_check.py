@@ -51,9 +51,10 @@ from bench.dirl_steps import (
     demonstrations,
     evaluate,
     frames_in,
+    il_equal_data,
     iterate_cmd,
     iteration_drives,
-    top_up,
+    reimitate_flags,
 )
 from bench.dirl_table import cell
 from bench.study_steps import StudyStep, run_chains
@@ -106,14 +107,12 @@ def chain(cfg: CheckConfig, step: StudyStep, sigma: float, seed: int, rows: list
     tag = f"noise{sigma:g}-seed{seed}"
     runs = Path(cfg.out) / "runs" / tag
     expert = Path(cfg.out) / "data" / f"expert-noise{sigma:g}"
-    imitation = ["--seed", str(seed), "--set", f"imitation_steps={study.imitation_steps}",
-                 "--set", "world_model_steps=0", "--set", "refine_steps=0"]  # fmt: skip
+    imitation = imitation_flags(study, seed)
     il = runs / "il"
     step(f"train-{tag}-il", iterate_cmd(study, [expert], il, *imitation), il / ".done")
     data = [expert, *iteration_drives(study, step, tag, sigma, 1, il)]
     imitated = runs / "imitated"
-    again = ["--set", "reimitate=true", "--set", f"imitation_steps={study.reimitate_steps}",
-             "--set", f"imitation_lr={study.reimitate_lr}"]  # fmt: skip
+    again = reimitate_flags(study)
     step(f"train-{tag}-imitated", iterate_cmd(study, data, imitated, "--seed", str(seed),
          "--init", str(il), *again, "--set", "world_model_steps=0", "--set", "refine_steps=0"),
          imitated / ".done")  # fmt: skip
@@ -135,7 +134,7 @@ def chain(cfg: CheckConfig, step: StudyStep, sigma: float, seed: int, rows: list
         models[run.name], previous = (run, frames), run
     if cfg.il_equal:
         extra = Path(cfg.out) / "data" / f"extra-noise{sigma:g}"
-        equal = [expert, *top_up(extra, frames - expert_frames)]
+        equal = il_equal_data(expert, extra, expert_frames, frames)
         il_eq = runs / f"il-equal{k}"
         step(f"train-{tag}-il-equal{k}", iterate_cmd(study, equal, il_eq, *imitation),
              il_eq / ".done")  # fmt: skip
@@ -148,6 +147,13 @@ def chain(cfg: CheckConfig, step: StudyStep, sigma: float, seed: int, rows: list
                      "frames": learnt_from,
                      "runs": out["runs"], "outcomes": json.loads(diagnostics.read_text())
                      if diagnostics.is_file() else None})  # fmt: skip
+
+
+def imitation_flags(study: StudyConfig, seed: int) -> list[str]:
+    """iterate.py flags of imitation alone (IL, IL at equal frames): no world model, no
+    refinement."""
+    return ["--seed", str(seed), "--set", f"imitation_steps={study.imitation_steps}",
+            "--set", "world_model_steps=0", "--set", "refine_steps=0"]  # fmt: skip
 
 
 def outcomes_model(k: int) -> str:
@@ -175,7 +181,20 @@ def paired(rows: list[dict], model: str, base: str, key: str) -> list[tuple[int,
     return out
 
 
-def report(rows: list[dict]) -> str:
+def outcome_pairs(rows: list[dict]) -> list[tuple[str, str]]:
+    """The (model, against) differences the outcome check reports, of the models in `rows`."""
+    names = {r["model"] for r in rows}
+    later = sorted(m for m in names if m.startswith("outcomes") and m != "outcomes")
+    pairs = [("outcomes", "imitated"), ("uniform", "imitated"), ("outcomes", "uniform"),
+             ("imitated", "IL"), ("outcomes", "IL")]  # fmt: skip
+    pairs += [(m, b) for m in later for b in ("outcomes", "imitated", "IL")]
+    equal = sorted(m for m in names if m.startswith("IL-equal"))
+    return pairs + [(outcomes_model(int(m.removeprefix("IL-equal"))), m) for m in equal]
+
+
+def report(rows: list[dict], pairs: list[tuple[str, str]] | None = None) -> str:
+    """Each model's driving (mean ± std over placements and seeds) and the paired differences
+    `pairs` (default: outcome_pairs), seed by seed."""
     lines = ["| model | seeds | frames | completion | collisions / min | avg m/s |",
              "|---|---|---|---|---|---|"]  # fmt: skip
     for model in dict.fromkeys(r["model"] for r in rows):
@@ -193,14 +212,7 @@ def report(rows: list[dict]) -> str:
         "| Δ collisions / min | per seed |",
         "|---|---|---|---|---|---|",
     ]
-    names = {r["model"] for r in rows}
-    later = sorted(m for m in names if m.startswith("outcomes") and m != "outcomes")
-    pairs = [("outcomes", "imitated"), ("uniform", "imitated"), ("outcomes", "uniform"),
-             ("imitated", "IL"), ("outcomes", "IL")]  # fmt: skip
-    pairs += [(m, b) for m in later for b in ("outcomes", "imitated", "IL")]
-    equal = sorted(m for m in names if m.startswith("IL-equal"))
-    pairs += [(outcomes_model(int(m.removeprefix("IL-equal"))), m) for m in equal]
-    for model, base in pairs:
+    for model, base in outcome_pairs(rows) if pairs is None else pairs:
         comp = paired(rows, model, base, "completion_ratio")
         coll = paired(rows, model, base, "collisions_per_min")
         if not comp:
@@ -228,18 +240,22 @@ def parse(argv: list[str] | None) -> CheckConfig:
         cfg = apply_sets(CheckConfig(), a.set, "CheckConfig in bench/outcome_check.py")
     except UserError as exc:
         p.error(str(exc))
-    if cfg.parallel < 1:
-        p.error(f"parallel: {cfg.parallel} (1 or more)")
-    cores = usable_cores()
     if cfg.outcome_iterations < 1:
         p.error(f"outcome_iterations: {cfg.outcome_iterations} (1 or more)")
+    return dataclasses.replace(cfg, study=study_for(p, cfg))
+
+
+def study_for(p: argparse.ArgumentParser, cfg) -> StudyConfig:
+    """The study's settings with a check's out, seeds, σs, placements and parallelism (every
+    core shared between its steps); a bad one ends in one line through `p`."""
+    if cfg.parallel < 1:
+        p.error(f"parallel: {cfg.parallel} (1 or more)")
     if any(not 0 <= s < 10 for s in cfg.demo_noise) or not cfg.demo_noise:
         p.error(f"demo_noise: {cfg.demo_noise} (one or more σ in [0, 10))")
-    study = dataclasses.replace(cfg.study, out=cfg.out, seeds=cfg.seeds,
-                                demo_noise=cfg.demo_noise,
-                                parallel=cfg.parallel, threads=cores, jobs=cores,
-                                eval_tracks=cfg.eval_tracks)  # fmt: skip
-    return dataclasses.replace(cfg, study=study)
+    cores = usable_cores()
+    return dataclasses.replace(cfg.study, out=cfg.out, seeds=cfg.seeds,
+                               demo_noise=cfg.demo_noise, parallel=cfg.parallel,
+                               threads=cores, jobs=cores, eval_tracks=cfg.eval_tracks)  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pytest
 
-from bench import outcome_check
+from bench import dirl_steps, outcome_check
 
 
 def _row(model, seed, completions, collisions=None):
@@ -66,7 +66,7 @@ def test_later_iterations_drive_the_previous_outcomes_policy_and_refine_it_again
     # every episode directory holds 1,000 frames; the second pool is handed out 1,000 at a time
     monkeypatch.setattr(outcome_check, "frames_in", lambda paths: 1000 * len(paths))
     monkeypatch.setattr(
-        outcome_check, "top_up", lambda pool, frames: [pool / f"{i}" for i in range(frames // 1000)]
+        dirl_steps, "top_up", lambda pool, frames: [pool / f"{i}" for i in range(frames // 1000)]
     )
     rows = []
     outcome_check.chain(cfg, lambda name, argv, marker: steps.append((name, argv)), 0.0, 0, rows)
@@ -109,7 +109,7 @@ def test_noisy_demonstrations_get_their_own_chain_without_the_control(monkeypatc
     steps = []
     monkeypatch.setattr(outcome_check, "evaluate", lambda *a: {"runs": []})
     monkeypatch.setattr(outcome_check, "frames_in", lambda paths: 1000 * len(paths))
-    monkeypatch.setattr(outcome_check, "top_up", lambda pool, frames: [pool / "0", pool / "1"])
+    monkeypatch.setattr(dirl_steps, "top_up", lambda pool, frames: [pool / "0", pool / "1"])
     rows = []
     outcome_check.chain(cfg, lambda name, argv, marker: steps.append((name, argv)), 1.0, 2, rows)
     argv = dict(steps)

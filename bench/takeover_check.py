@@ -1,0 +1,168 @@
+"""Rounds of take-overs alone, against imitation at equal frames: are labels in states the
+policy reached worth more per frame than clean demonstrations?
+
+    python -m bench.takeover_check                     # σ 0, two rounds, seeds 0-2 (~30 min here)
+    python -m bench.takeover_check --set demo_noise=1.0
+
+Why: the study (bench/dirl_sim.py) and the outcome check (bench/outcome_check.py) spend each
+round's frames on exploration drives (the crashes the world model and refinement learn from)
+and on take-overs. Neither refinement beat imitation on as many clean frames, and the one gain
+their rounds showed came from the take-overs ("imitated" over IL, +0.01 to +0.03; of seed 0's
+2,974 take-over frames, 1,343 are the expert's). Here every frame of a round is a take-over
+drive: the policy drives iteration k's placements `round_seconds` each while the expert takes
+over before a crash (the person with the override), and the policy imitates again, from
+itself, on every labelled frame so far ("takeovers<k>": iterate.py's reimitate with the
+study's steps and learning rate). That is the paper's iteration with its intervention data and
+without its world model and refinement (which added nothing measurable here).
+
+It shares the outcome check's OUT: the demonstrations and the IL runs are reused (same
+commands, same markers). "IL-equal-takeovers<k>" imitates the demonstrations topped up from
+the second pool to the last round's frames. `round_seconds` (50) was fixed before any of these
+drives so that a round records about what an outcome round does (40 s drives + 21 s
+take-overs, less the drives' resets): ~35K frames after two rounds, as outcomes2. Nothing was
+tuned on the placements the table judges (the test placements, 100-199).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from bench.dirl_sim import StudyConfig
+from bench.dirl_steps import (
+    ROOT,
+    demonstrations,
+    evaluate,
+    frames_in,
+    il_equal_data,
+    iterate_cmd,
+    reimitate_flags,
+    takeover_drives,
+)
+from bench.outcome_check import imitation_flags, report, study_for, suffix
+from bench.study_steps import StudyStep, run_chains
+from carrt.errors import UserError
+from carrt.settings import apply_sets
+
+
+@dataclass
+class TakeoverConfig:
+    """The rounds' settings; everything else is the study's (StudyConfig)."""
+
+    out: str = "bench/results/outcome"  # the outcome check's: its demonstrations and IL reused
+    seeds: tuple[int, ...] = (0, 1, 2)
+    rounds: int = 2
+    round_seconds: float = 50.0  # simulated s of take-over driving per placement and round
+    demo_noise: tuple[float, ...] = (0.0,)  # σ of the demonstrations and the take-overs
+    eval_tracks: str = StudyConfig.eval_tracks
+    parallel: int = 2
+    study: StudyConfig = field(default_factory=StudyConfig)
+
+
+def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: list[dict]) -> None:
+    """IL → round 1's take-overs → imitation again → round 2's … and IL at the last round's
+    frames, every policy evaluated, for one demonstration noise and seed."""
+    study = cfg.study
+    tag = f"noise{sigma:g}-seed{seed}"
+    runs = Path(cfg.out) / "runs" / tag
+    expert = Path(cfg.out) / "data" / f"expert-noise{sigma:g}"
+    il = runs / "il"
+    step(f"train-{tag}-il", iterate_cmd(study, [expert], il, *imitation_flags(study, seed)),
+         il / ".done")  # fmt: skip
+    expert_frames = frames_in([expert])
+    models = {"IL": (il, expert_frames)}
+    data, previous = [expert], il
+    for k in range(1, cfg.rounds + 1):
+        data = [*data, takeover_drives(study, step, tag, sigma, k, previous, cfg.round_seconds,
+                                       kind="rounds")]  # fmt: skip
+        run = runs / f"takeovers{k}"
+        step(f"train-{tag}-takeovers{k}", iterate_cmd(study, data, run, "--seed", str(seed),
+             "--init", str(previous), *reimitate_flags(study), "--set", "world_model_steps=0",
+             "--set", "refine_steps=0"), run / ".done")  # fmt: skip
+        models[f"takeovers{k}"], previous = (run, frames_in(data)), run
+    extra = Path(cfg.out) / "data" / f"extra-noise{sigma:g}"
+    equal = il_equal_data(expert, extra, expert_frames, models[f"takeovers{cfg.rounds}"][1])
+    il_eq = runs / f"il-equal-takeovers{cfg.rounds}"
+    step(
+        f"train-{tag}-il-equal-takeovers{cfg.rounds}",
+        iterate_cmd(study, equal, il_eq, *imitation_flags(study, seed)),
+        il_eq / ".done",
+    )
+    models[f"IL-equal-takeovers{cfg.rounds}"] = (il_eq, frames_in(equal))
+    for model, (run, learnt_from) in models.items():
+        result = run / f"eval{suffix(cfg)}.json"
+        out = evaluate(study, step, f"{tag}-{model}{suffix(cfg)}", run / "policy.onnx", result)
+        rows.append({"model": model, "demo_noise": sigma, "seed": seed, "run": str(run),
+                     "frames": learnt_from, "runs": out["runs"]})  # fmt: skip
+
+
+def pairs(cfg: TakeoverConfig) -> list[tuple[str, str]]:
+    """Each round against IL and the round before it; the last against IL at its frames."""
+    out = [("takeovers1", "IL")]
+    out += [(f"takeovers{k}", f"takeovers{k - 1}") for k in range(2, cfg.rounds + 1)]
+    last = f"takeovers{cfg.rounds}"
+    return out + [(last, "IL"), (last, f"IL-equal-takeovers{cfg.rounds}")][cfg.rounds == 1 :]
+
+
+def parse(argv: list[str] | None) -> TakeoverConfig:
+    p = argparse.ArgumentParser(
+        prog="python -m bench.takeover_check", description=__doc__.split("\n")[0]
+    )
+    p.add_argument(
+        "--set", action="append", default=[], metavar="FIELD=VALUE",
+        help="a TakeoverConfig field (bench/takeover_check.py); tuples comma-separated",
+    )  # fmt: skip
+    a = p.parse_args(argv)
+    try:
+        cfg = apply_sets(TakeoverConfig(), a.set, "TakeoverConfig in bench/takeover_check.py")
+    except UserError as exc:
+        p.error(str(exc))
+    if cfg.rounds < 1:
+        p.error(f"rounds: {cfg.rounds} (1 or more)")
+    tracks = cfg.study.iteration_tracks
+    if tracks and cfg.rounds > len(tracks):
+        p.error(
+            f"rounds: {cfg.rounds} (StudyConfig.iteration_tracks has placements for {len(tracks)})"
+        )
+    if not 0 < cfg.round_seconds < 1e5:
+        p.error(f"round_seconds: {cfg.round_seconds} (more than 0)")
+    return dataclasses.replace(cfg, study=study_for(p, cfg))
+
+
+def main(argv: list[str] | None = None) -> int:
+    cfg = parse(argv)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    n, r = len(cfg.demo_noise) * len(cfg.seeds), cfg.rounds
+    kinds = {"demos": 2 * len(cfg.demo_noise), "train il": n, "takeovers": r * n,
+             "train takeovers": r * n, "train il-equal-takeovers": n,
+             "eval": (2 + r) * n}  # fmt: skip
+    step = StudyStep(out, kinds, parallel=cfg.parallel, cwd=ROOT)
+    for sigma in cfg.demo_noise:
+        demonstrations(cfg.study, step, sigma, cfg.study.train_tracks, "expert")
+        demonstrations(cfg.study, step, sigma, cfg.study.extra_tracks, "extra")
+    rows, _ = run_chains([functools.partial(chain, cfg, step, sigma, s)
+                          for sigma in cfg.demo_noise for s in cfg.seeds])  # fmt: skip
+    text = "\n\n".join(
+        f"Demonstration noise σ {sigma:g}:\n\n"
+        + report([r for r in rows if r["demo_noise"] == sigma], pairs(cfg))
+        for sigma in cfg.demo_noise
+    )
+    results = {"config": dataclasses.asdict(cfg), "rows": rows,
+               "wall_s": time.monotonic() - started}  # fmt: skip
+    name = f"takeovers{suffix(cfg)}"
+    results_file, table_file = out / f"results-{name}.json", out / f"table-{name}.md"
+    results_file.write_text(json.dumps(results, indent=1) + "\n")
+    table_file.write_text(text + "\n")
+    print("\n" + text + f"\n\nwritten: {results_file}, {table_file}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,85 @@
+"""bench/takeover_check.py: rounds whose every frame is a take-over drive, against IL at equal
+frames. The check itself drives and trains for half an hour; here its chain's commands (what
+each round drives, what it learns from, from which policy) and its table's pairs."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench import dirl_steps, outcome_check, takeover_check
+
+
+def _chain(monkeypatch, tmp_path, *sets, sigma=0.0, seed=0):
+    cfg = takeover_check.parse(["--set", f"out={tmp_path}", *sets])
+    steps = []
+    monkeypatch.setattr(takeover_check, "evaluate", lambda *a: {"runs": []})
+    # every episode directory holds 1,000 frames; the second pool is handed out 1,000 at a time
+    monkeypatch.setattr(takeover_check, "frames_in", lambda paths: 1000 * len(paths))
+    monkeypatch.setattr(
+        dirl_steps, "top_up", lambda pool, frames: [pool / f"{i}" for i in range(frames // 1000)]
+    )
+    rows = []
+    takeover_check.chain(
+        cfg, lambda name, argv, marker: steps.append((name, argv)), sigma, seed, rows
+    )
+    return dict(steps), rows
+
+
+def test_each_round_is_take_overs_by_the_previous_policy_and_imitation_again(monkeypatch, tmp_path):
+    argv, rows = _chain(monkeypatch, tmp_path, "--set", "rounds=2", "--set", "round_seconds=50",
+                        "--set", "demo_noise=1.0", sigma=1.0, seed=2)  # fmt: skip
+    runs, data = tmp_path / "runs" / "noise1-seed2", tmp_path / "data"
+    first, second = argv["takeovers-noise1-seed2-rounds1"], argv["takeovers-noise1-seed2-rounds2"]
+    # take-overs only (the expert steps in before a crash), the round's seconds, the demos' σ
+    assert "interventions" in first and "drives" not in first
+    assert first[first.index("--seconds") + 1] == "50.0"
+    assert first[first.index("--noise") + 1] == "1.0"
+    # round 1 drives IL's policy, round 2 the policy round 1 made, on placements of its own
+    assert str(runs / "il" / "policy.onnx") in first
+    assert str(runs / "takeovers1" / "policy.onnx") in second
+    assert first[first.index("--tracks") + 1] != second[second.index("--tracks") + 1]
+    assert not any(name.startswith("drive-") for name in argv)  # no exploration drives
+    # round 2 imitates again from round 1's policy on the demonstrations and both rounds
+    train = argv["train-noise1-seed2-takeovers2"]
+    assert train[train.index("--init") + 1] == str(runs / "takeovers1")
+    for episodes in ("expert-noise1", "rounds-noise1-seed2-iter1", "rounds-noise1-seed2-iter2"):
+        assert str(data / episodes) in train
+    assert "reimitate=true" in train and "world_model_steps=0" in train
+    assert "refine_steps=0" in train
+    # IL: the outcome check's own command (so its run is reused); IL at round 2's 3,000 frames
+    study = takeover_check.parse(["--set", f"out={tmp_path}"]).study
+    assert argv["train-noise1-seed2-il"][-len(outcome_check.imitation_flags(study, 2)) :] == (
+        outcome_check.imitation_flags(study, 2)
+    )
+    frames = {r["model"]: r["frames"] for r in rows}
+    assert frames == {"IL": 1000, "takeovers1": 2000, "takeovers2": 3000,
+                      "IL-equal-takeovers2": 3000}  # fmt: skip
+    equal = argv["train-noise1-seed2-il-equal-takeovers2"]
+    assert str(data / "extra-noise1" / "1") in equal and "--init" not in equal
+
+
+def test_the_last_round_is_paired_with_imitation_at_its_frames():
+    cfg = takeover_check.parse([])
+    assert takeover_check.pairs(cfg) == [
+        ("takeovers1", "IL"), ("takeovers2", "takeovers1"), ("takeovers2", "IL"),
+        ("takeovers2", "IL-equal-takeovers2"),
+    ]  # fmt: skip
+    runs = [{"track": t, "completion_ratio": c, "collisions_per_min": 1.0, "average_speed": 1.0}
+            for t, c in ((100, 0.9), (101, 0.7))]  # fmt: skip
+    rows = [{"model": "takeovers2", "seed": 0, "frames": 35000, "runs": runs},
+            {"model": "IL-equal-takeovers2", "seed": 0, "frames": 35100,
+             "runs": [{**r, "completion_ratio": 0.6} for r in runs]}]  # fmt: skip
+    table = outcome_check.report(rows, takeover_check.pairs(cfg))
+    assert "| takeovers2 | IL-equal-takeovers2 | +0.200 |" in table, table
+
+
+@pytest.mark.parametrize(
+    "setting, says",
+    [("rounds=0", "rounds: 0"), ("rounds=4", "rounds: 4"), ("round_seconds=nan", "round_seconds"),
+     ("parallel=0", "parallel: 0"), ("demo_noise=-1", "demo_noise")],
+)  # fmt: skip
+def test_a_bad_setting_is_refused_in_one_line(capsys, setting, says):
+    with pytest.raises(SystemExit) as stop:
+        takeover_check.parse(["--set", setting])
+    assert stop.value.code == 2
+    assert says in capsys.readouterr().err.strip().splitlines()[-1]
