@@ -122,7 +122,8 @@ def comparison(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def plot(rows: list[dict], path: Path) -> None:
+def plot(rows: list[dict], path: Path,
+         title: str = "IL and DIRL iterations, mean ± std over seeds") -> None:  # fmt: skip
     import matplotlib
 
     matplotlib.use("Agg")
@@ -140,7 +141,7 @@ def plot(rows: list[dict], path: Path) -> None:
     ax.set_xlabel("frames of data")
     ax.set_ylabel("completion ratio (held-out placements)")
     ax.set_ylim(-0.02, 1.02)
-    ax.set_title("IL and DIRL iterations, mean ± std over seeds")
+    ax.set_title(title)
     ax.grid(alpha=0.3)
     if rows:  # a --report before any model finished has nothing to label
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # off the points

@@ -17,7 +17,8 @@ without its world model and refinement (which added nothing measurable here).
 
 It shares the outcome check's OUT: the demonstrations and the IL runs are reused (same
 commands, same markers). "IL-equal-takeovers<k>" imitates the demonstrations topped up from
-the second pool to the last round's frames. `round_seconds` (50) was fixed before any of these
+the second pool to round k's frames; OUT/completion_vs_frames-takeovers-noise<σs>.png plots
+both against frames. `round_seconds` (50) was fixed before any of these
 drives so that a round records about what an outcome round does (40 s drives + 21 s
 take-overs, less the drives' resets): ~35K frames after two rounds, as outcomes2. Nothing was
 tuned on the placements the table judges (the test placements, 100-199).
@@ -44,6 +45,7 @@ from bench.dirl_steps import (
     reimitate_flags,
     takeover_drives,
 )
+from bench.dirl_table import plot
 from bench.outcome_check import imitation_flags, report, study_for, suffix
 from bench.study_steps import StudyStep, run_chains
 from carrt.errors import UserError
@@ -77,6 +79,7 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
     expert_frames = frames_in([expert])
     models = {"IL": (il, expert_frames)}
     data, previous = [expert], il
+    extra = Path(cfg.out) / "data" / f"extra-noise{sigma:g}"
     for k in range(1, cfg.rounds + 1):
         data = [*data, takeover_drives(study, step, tag, sigma, k, previous, cfg.round_seconds,
                                        kind="rounds")]  # fmt: skip
@@ -85,28 +88,30 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
              "--init", str(previous), *reimitate_flags(study), "--set", "world_model_steps=0",
              "--set", "refine_steps=0"), run / ".done")  # fmt: skip
         models[f"takeovers{k}"], previous = (run, frames_in(data)), run
-    extra = Path(cfg.out) / "data" / f"extra-noise{sigma:g}"
-    equal = il_equal_data(expert, extra, expert_frames, models[f"takeovers{cfg.rounds}"][1])
-    il_eq = runs / f"il-equal-takeovers{cfg.rounds}"
-    step(
-        f"train-{tag}-il-equal-takeovers{cfg.rounds}",
-        iterate_cmd(study, equal, il_eq, *imitation_flags(study, seed)),
-        il_eq / ".done",
-    )
-    models[f"IL-equal-takeovers{cfg.rounds}"] = (il_eq, frames_in(equal))
+        # IL on as many frames: the demonstrations topped up from the second pool
+        equal = il_equal_data(expert, extra, expert_frames, models[f"takeovers{k}"][1])
+        il_eq = runs / f"il-equal-takeovers{k}"
+        step(
+            f"train-{tag}-il-equal-takeovers{k}",
+            iterate_cmd(study, equal, il_eq, *imitation_flags(study, seed)),
+            il_eq / ".done",
+        )
+        models[f"IL-equal-takeovers{k}"] = (il_eq, frames_in(equal))
     for model, (run, learnt_from) in models.items():
         result = run / f"eval{suffix(cfg)}.json"
         out = evaluate(study, step, f"{tag}-{model}{suffix(cfg)}", run / "policy.onnx", result)
         rows.append({"model": model, "demo_noise": sigma, "seed": seed, "run": str(run),
-                     "frames": learnt_from, "runs": out["runs"]})  # fmt: skip
+                     "frames": learnt_from, "aggregate": out["aggregate"],
+                     "runs": out["runs"]})  # fmt: skip
 
 
 def pairs(cfg: TakeoverConfig) -> list[tuple[str, str]]:
-    """Each round against IL and the round before it; the last against IL at its frames."""
-    out = [("takeovers1", "IL")]
-    out += [(f"takeovers{k}", f"takeovers{k - 1}") for k in range(2, cfg.rounds + 1)]
-    last = f"takeovers{cfg.rounds}"
-    return out + [(last, "IL"), (last, f"IL-equal-takeovers{cfg.rounds}")][cfg.rounds == 1 :]
+    """Each round against IL at its frames, IL on the demonstrations and the round before."""
+    out = []
+    for k in range(1, cfg.rounds + 1):
+        out += [(f"takeovers{k}", f"IL-equal-takeovers{k}"), (f"takeovers{k}", "IL")]
+        out += [(f"takeovers{k}", f"takeovers{k - 1}")] if k > 1 else []
+    return out
 
 
 def parse(argv: list[str] | None) -> TakeoverConfig:
@@ -141,14 +146,17 @@ def main(argv: list[str] | None = None) -> int:
     started = time.monotonic()
     n, r = len(cfg.demo_noise) * len(cfg.seeds), cfg.rounds
     kinds = {"demos": 2 * len(cfg.demo_noise), "train il": n, "takeovers": r * n,
-             "train takeovers": r * n, "train il-equal-takeovers": n,
-             "eval": (2 + r) * n}  # fmt: skip
+             "train takeovers": r * n, "train il-equal-takeovers": r * n,
+             "eval": (1 + 2 * r) * n}  # fmt: skip
     step = StudyStep(out, kinds, parallel=cfg.parallel, cwd=ROOT)
     for sigma in cfg.demo_noise:
         demonstrations(cfg.study, step, sigma, cfg.study.train_tracks, "expert")
         demonstrations(cfg.study, step, sigma, cfg.study.extra_tracks, "extra")
     rows, _ = run_chains([functools.partial(chain, cfg, step, sigma, s)
                           for sigma in cfg.demo_noise for s in cfg.seeds])  # fmt: skip
+    name = f"takeovers{suffix(cfg)}-noise{'_'.join(f'{x:g}' for x in cfg.demo_noise)}"
+    figure = out / f"completion_vs_frames-{name}.png"
+    plot(rows, figure, "IL and rounds of take-overs, mean ± std over seeds")
     text = "\n\n".join(
         f"Demonstration noise σ {sigma:g}:\n\n"
         + report([r for r in rows if r["demo_noise"] == sigma], pairs(cfg))
@@ -156,11 +164,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     results = {"config": dataclasses.asdict(cfg), "rows": rows,
                "wall_s": time.monotonic() - started}  # fmt: skip
-    name = f"takeovers{suffix(cfg)}"
     results_file, table_file = out / f"results-{name}.json", out / f"table-{name}.md"
     results_file.write_text(json.dumps(results, indent=1) + "\n")
     table_file.write_text(text + "\n")
-    print("\n" + text + f"\n\nwritten: {results_file}, {table_file}")
+    print("\n" + text + f"\n\nwritten: {results_file}, {table_file}, {figure}")
     return 0
 
 

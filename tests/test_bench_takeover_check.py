@@ -4,6 +4,8 @@ each round drives, what it learns from, from which policy) and its table's pairs
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from bench import dirl_steps, outcome_check, takeover_check
@@ -12,7 +14,7 @@ from bench import dirl_steps, outcome_check, takeover_check
 def _chain(monkeypatch, tmp_path, *sets, sigma=0.0, seed=0):
     cfg = takeover_check.parse(["--set", f"out={tmp_path}", *sets])
     steps = []
-    monkeypatch.setattr(takeover_check, "evaluate", lambda *a: {"runs": []})
+    monkeypatch.setattr(takeover_check, "evaluate", lambda *a: {"runs": [], "aggregate": {}})
     # every episode directory holds 1,000 frames; the second pool is handed out 1,000 at a time
     monkeypatch.setattr(takeover_check, "frames_in", lambda paths: 1000 * len(paths))
     monkeypatch.setattr(
@@ -46,23 +48,25 @@ def test_each_round_is_take_overs_by_the_previous_policy_and_imitation_again(mon
         assert str(data / episodes) in train
     assert "reimitate=true" in train and "world_model_steps=0" in train
     assert "refine_steps=0" in train
-    # IL: the outcome check's own command (so its run is reused); IL at round 2's 3,000 frames
+    # IL: the outcome check's own command (so its run is reused); IL at each round's frames
     study = takeover_check.parse(["--set", f"out={tmp_path}"]).study
     assert argv["train-noise1-seed2-il"][-len(outcome_check.imitation_flags(study, 2)) :] == (
         outcome_check.imitation_flags(study, 2)
     )
     frames = {r["model"]: r["frames"] for r in rows}
-    assert frames == {"IL": 1000, "takeovers1": 2000, "takeovers2": 3000,
-                      "IL-equal-takeovers2": 3000}  # fmt: skip
+    assert frames == {"IL": 1000, "takeovers1": 2000, "IL-equal-takeovers1": 2000,
+                      "takeovers2": 3000, "IL-equal-takeovers2": 3000}  # fmt: skip
     equal = argv["train-noise1-seed2-il-equal-takeovers2"]
     assert str(data / "extra-noise1" / "1") in equal and "--init" not in equal
+    assert str(data / "extra-noise1" / "1") not in argv["train-noise1-seed2-il-equal-takeovers1"]
 
 
-def test_the_last_round_is_paired_with_imitation_at_its_frames():
+def test_each_round_is_paired_with_imitation_at_its_frames():
     cfg = takeover_check.parse([])
     assert takeover_check.pairs(cfg) == [
-        ("takeovers1", "IL"), ("takeovers2", "takeovers1"), ("takeovers2", "IL"),
-        ("takeovers2", "IL-equal-takeovers2"),
+        ("takeovers1", "IL-equal-takeovers1"), ("takeovers1", "IL"),
+        ("takeovers2", "IL-equal-takeovers2"), ("takeovers2", "IL"),
+        ("takeovers2", "takeovers1"),
     ]  # fmt: skip
     runs = [{"track": t, "completion_ratio": c, "collisions_per_min": 1.0, "average_speed": 1.0}
             for t, c in ((100, 0.9), (101, 0.7))]  # fmt: skip
@@ -83,3 +87,25 @@ def test_a_bad_setting_is_refused_in_one_line(capsys, setting, says):
         takeover_check.parse(["--set", setting])
     assert stop.value.code == 2
     assert says in capsys.readouterr().err.strip().splitlines()[-1]
+
+
+def test_the_run_writes_its_results_table_and_completion_against_frames(monkeypatch, tmp_path):
+    def fake_chain(cfg, step, sigma, seed, rows):
+        for model, frames, c in (("IL", 1000, 0.5), ("takeovers1", 2000, 0.7),
+                                 ("IL-equal-takeovers1", 2000, 0.6)):  # fmt: skip
+            runs = [{"track": 100, "completion_ratio": c, "collisions_per_min": 1.0,
+                     "average_speed": 1.0}]  # fmt: skip
+            rows.append({"model": model, "demo_noise": sigma, "seed": seed, "frames": frames,
+                         "aggregate": {"completion_ratio": {"mean": c}}, "runs": runs})  # fmt: skip
+
+    monkeypatch.setattr(takeover_check, "chain", fake_chain)
+    monkeypatch.setattr(takeover_check, "demonstrations", lambda *a: None)
+    assert takeover_check.main(["--set", f"out={tmp_path}", "--set", "rounds=1",
+                                "--set", "demo_noise=0,1.0"]) == 0  # fmt: skip
+    name = "takeovers-noise0_1"
+    assert (tmp_path / f"completion_vs_frames-{name}.png").read_bytes()[:4] == b"\x89PNG"
+    results = json.loads((tmp_path / f"results-{name}.json").read_text())
+    assert {r["demo_noise"] for r in results["rows"]} == {0.0, 1.0}
+    table = (tmp_path / f"table-{name}.md").read_text()
+    assert "Demonstration noise σ 1:" in table
+    assert "| takeovers1 | IL-equal-takeovers1 | +0.100 ± 0.000 |" in table, table
