@@ -228,21 +228,40 @@ def report(rows: list[dict], pairs: list[tuple[str, str]] | None = None) -> str:
 
 
 def parse(argv: list[str] | None) -> CheckConfig:
-    p = argparse.ArgumentParser(
-        prog="python -m bench.outcome_check", description=__doc__.split("\n")[0]
-    )
-    p.add_argument(
-        "--set", action="append", default=[], metavar="FIELD=VALUE",
-        help="a CheckConfig field (bench/outcome_check.py); tuples comma-separated",
-    )  # fmt: skip
-    a = p.parse_args(argv)
-    try:
-        cfg = apply_sets(CheckConfig(), a.set, "CheckConfig in bench/outcome_check.py")
-    except UserError as exc:
-        p.error(str(exc))
+    p, cfg = read_sets(argv, CheckConfig(), "bench.outcome_check", __doc__, "CheckConfig")
     if cfg.outcome_iterations < 1:
         p.error(f"outcome_iterations: {cfg.outcome_iterations} (1 or more)")
     return dataclasses.replace(cfg, study=study_for(p, cfg))
+
+
+def read_sets(argv: list[str] | None, cfg, module: str, doc: str, name: str):
+    """A check's command line: `--set FIELD=VALUE` on its config dataclass `cfg` (named `name`
+    in `module`). Returns the parser (for one-line errors, exit code 2) and the config."""
+    p = argparse.ArgumentParser(prog=f"python -m {module}", description=doc.split("\n")[0])
+    where = f"{name} in {module.replace('.', '/')}.py"
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help=f"a {where} field; tuples comma-separated")  # fmt: skip
+    try:
+        return p, apply_sets(cfg, p.parse_args(argv).set, where)
+    except UserError as exc:
+        p.error(str(exc))
+
+
+def write_results(cfg, rows: list[dict], started: float, name: str,
+                  pairs: list[tuple[str, str]] | None = None) -> str:  # fmt: skip
+    """OUT/results<name>.json (config, rows, wall time) and OUT/table<name>.md (one table per
+    demonstration noise, `report` with `pairs`); returns the tables' text."""
+    text = "\n\n".join(
+        f"Demonstration noise σ {sigma:g}:\n\n"
+        + report([r for r in rows if r["demo_noise"] == sigma], pairs)
+        for sigma in cfg.demo_noise
+    )
+    results = {"config": dataclasses.asdict(cfg), "rows": rows,
+               "wall_s": time.monotonic() - started}  # fmt: skip
+    out = Path(cfg.out)
+    (out / f"results{name}.json").write_text(json.dumps(results, indent=1) + "\n")
+    (out / f"table{name}.md").write_text(text + "\n")
+    return text
 
 
 def study_for(p: argparse.ArgumentParser, cfg) -> StudyConfig:
@@ -276,17 +295,8 @@ def main(argv: list[str] | None = None) -> int:
             demonstrations(cfg.study, step, sigma, cfg.study.extra_tracks, "extra")
     rows, _ = run_chains([functools.partial(chain, cfg, step, sigma, s)
                           for sigma in cfg.demo_noise for s in cfg.seeds])  # fmt: skip
-    text = "\n\n".join(
-        f"Demonstration noise σ {sigma:g}:\n\n"
-        + report([r for r in rows if r["demo_noise"] == sigma])
-        for sigma in cfg.demo_noise
-    )
-    results = {"config": dataclasses.asdict(cfg), "rows": rows,
-               "wall_s": time.monotonic() - started}  # fmt: skip
-    results_file, table_file = out / f"results{suffix(cfg)}.json", out / f"table{suffix(cfg)}.md"
-    results_file.write_text(json.dumps(results, indent=1) + "\n")
-    table_file.write_text(text + "\n")
-    print("\n" + text + f"\n\nwritten: {results_file}, {table_file}")
+    text = write_results(cfg, rows, started, suffix(cfg))
+    print("\n" + text + f"\n\nwritten: {out}/results{suffix(cfg)}.json, table{suffix(cfg)}.md")
     return 0
 
 

@@ -26,10 +26,8 @@ tuned on the placements the table judges (the test placements, 100-199).
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,10 +44,8 @@ from bench.dirl_steps import (
     takeover_drives,
 )
 from bench.dirl_table import plot
-from bench.outcome_check import imitation_flags, report, study_for, suffix
+from bench.outcome_check import imitation_flags, read_sets, study_for, suffix, write_results
 from bench.study_steps import StudyStep, run_chains
-from carrt.errors import UserError
-from carrt.settings import apply_sets
 
 
 @dataclass
@@ -115,18 +111,7 @@ def pairs(cfg: TakeoverConfig) -> list[tuple[str, str]]:
 
 
 def parse(argv: list[str] | None) -> TakeoverConfig:
-    p = argparse.ArgumentParser(
-        prog="python -m bench.takeover_check", description=__doc__.split("\n")[0]
-    )
-    p.add_argument(
-        "--set", action="append", default=[], metavar="FIELD=VALUE",
-        help="a TakeoverConfig field (bench/takeover_check.py); tuples comma-separated",
-    )  # fmt: skip
-    a = p.parse_args(argv)
-    try:
-        cfg = apply_sets(TakeoverConfig(), a.set, "TakeoverConfig in bench/takeover_check.py")
-    except UserError as exc:
-        p.error(str(exc))
+    p, cfg = read_sets(argv, TakeoverConfig(), "bench.takeover_check", __doc__, "TakeoverConfig")
     if cfg.rounds < 1:
         p.error(f"rounds: {cfg.rounds} (1 or more)")
     tracks = cfg.study.iteration_tracks
@@ -157,17 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     name = f"takeovers{suffix(cfg)}-noise{'_'.join(f'{x:g}' for x in cfg.demo_noise)}"
     figure = out / f"completion_vs_frames-{name}.png"
     plot(rows, figure, "IL and rounds of take-overs, mean ± std over seeds")
-    text = "\n\n".join(
-        f"Demonstration noise σ {sigma:g}:\n\n"
-        + report([r for r in rows if r["demo_noise"] == sigma], pairs(cfg))
-        for sigma in cfg.demo_noise
-    )
-    results = {"config": dataclasses.asdict(cfg), "rows": rows,
-               "wall_s": time.monotonic() - started}  # fmt: skip
-    results_file, table_file = out / f"results-{name}.json", out / f"table-{name}.md"
-    results_file.write_text(json.dumps(results, indent=1) + "\n")
-    table_file.write_text(text + "\n")
-    print("\n" + text + f"\n\nwritten: {results_file}, {table_file}, {figure}")
+    text = write_results(cfg, rows, started, f"-{name}", pairs(cfg))
+    print("\n" + text + f"\n\nwritten: {out}/results-{name}.json, table-{name}.md, {figure}")
     return 0
 
 
