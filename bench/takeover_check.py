@@ -1,8 +1,12 @@
 """Rounds of take-overs alone, against imitation at equal frames: are labels in states the
 policy reached worth more per frame than clean demonstrations?
 
-    python -m bench.takeover_check                     # σ 0, two rounds, seeds 0-2 (~30 min here)
-    python -m bench.takeover_check --set demo_noise=1.0
+    python -m bench.takeover_check                     # σ 0, two rounds, seeds 0-2
+    python -m bench.takeover_check --set rounds=3
+    python -m bench.takeover_check --set demo_noise=0.5,1.0
+
+(Here, 2 cores, with the outcome check's demonstrations and IL already made: 23 min for σ 0's
+two rounds, 28 more for a third and IL at rounds 1 and 3, 49 for σ 0.5 and 1.0's two rounds.)
 
 Why: the study (bench/dirl_sim.py) and the outcome check (bench/outcome_check.py) spend each
 round's frames on exploration drives (the crashes the world model and refinement learn from)
