@@ -57,7 +57,7 @@ from bench.dirl_steps import (
     reimitate_flags,
 )
 from bench.dirl_table import cell
-from bench.study_steps import StudyStep, run_chains
+from bench.study_steps import NotRun, StudyStep, finished_steps, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
 
@@ -247,6 +247,28 @@ def read_sets(argv: list[str] | None, cfg, module: str, doc: str, name: str):
         p.error(str(exc))
 
 
+def run_check(cfg, kinds: dict[str, int], chain_fn, extra: bool = True) -> list[dict]:
+    """A check's steps: each σ's demonstrations (and the second pool with `extra`), then
+    `chain_fn(cfg, step, σ, seed, rows)` for every σ and seed side by side. The steps an earlier
+    invocation finished are counted first (the chains walked with nothing run, as the study
+    does), so the ETA leaves them out instead of guessing them at a typical time."""
+
+    def walk(step: StudyStep) -> list[dict]:
+        for sigma in cfg.demo_noise:
+            try:
+                demonstrations(cfg.study, step, sigma, cfg.study.train_tracks, "expert")
+                if extra:
+                    demonstrations(cfg.study, step, sigma, cfg.study.extra_tracks, "extra")
+            except NotRun:  # only while counting: the chains stop at their first step too
+                pass
+        return run_chains([functools.partial(chain_fn, cfg, step, sigma, s)
+                           for sigma in cfg.demo_noise for s in cfg.seeds])[0]  # fmt: skip
+
+    finished = finished_steps(Path(cfg.out), kinds, walk)
+    return walk(StudyStep(Path(cfg.out), kinds, parallel=cfg.parallel, cwd=ROOT,
+                          finished_before=finished))  # fmt: skip
+
+
 def write_results(cfg, rows: list[dict], started: float, name: str,
                   pairs: list[tuple[str, str]] | None = None) -> str:  # fmt: skip
     """OUT/results<name>.json (config, rows, wall time) and OUT/table<name>.md (one table per
@@ -288,13 +310,7 @@ def main(argv: list[str] | None = None) -> int:
              "train il-equal": n * cfg.il_equal, "drive": k * n, "takeovers": k * n,
              "train imitated": n, "train outcomes": k * n, "train uniform": control,
              "eval": (2 + k + cfg.il_equal) * n + control}  # fmt: skip
-    step = StudyStep(out, kinds, parallel=cfg.parallel, cwd=ROOT)
-    for sigma in cfg.demo_noise:
-        demonstrations(cfg.study, step, sigma, cfg.study.train_tracks, "expert")
-        if cfg.il_equal:
-            demonstrations(cfg.study, step, sigma, cfg.study.extra_tracks, "extra")
-    rows, _ = run_chains([functools.partial(chain, cfg, step, sigma, s)
-                          for sigma in cfg.demo_noise for s in cfg.seeds])  # fmt: skip
+    rows = run_check(cfg, kinds, chain, extra=cfg.il_equal)
     text = write_results(cfg, rows, started, suffix(cfg))
     print("\n" + text + f"\n\nwritten: {out}/results{suffix(cfg)}.json, table{suffix(cfg)}.md")
     return 0

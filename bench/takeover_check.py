@@ -31,15 +31,12 @@ tuned on the placements the table judges (the test placements, 100-199).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench.dirl_sim import StudyConfig
 from bench.dirl_steps import (
-    ROOT,
-    demonstrations,
     evaluate,
     frames_in,
     il_equal_data,
@@ -48,8 +45,15 @@ from bench.dirl_steps import (
     takeover_drives,
 )
 from bench.dirl_table import plot
-from bench.outcome_check import imitation_flags, read_sets, study_for, suffix, write_results
-from bench.study_steps import StudyStep, run_chains
+from bench.outcome_check import (
+    imitation_flags,
+    read_sets,
+    run_check,
+    study_for,
+    suffix,
+    write_results,
+)
+from bench.study_steps import StudyStep
 
 
 @dataclass
@@ -137,12 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     kinds = {"demos": 2 * len(cfg.demo_noise), "train il": n, "takeovers": r * n,
              "train takeovers": r * n, "train il-equal-takeovers": r * n,
              "eval": (1 + 2 * r) * n}  # fmt: skip
-    step = StudyStep(out, kinds, parallel=cfg.parallel, cwd=ROOT)
-    for sigma in cfg.demo_noise:
-        demonstrations(cfg.study, step, sigma, cfg.study.train_tracks, "expert")
-        demonstrations(cfg.study, step, sigma, cfg.study.extra_tracks, "extra")
-    rows, _ = run_chains([functools.partial(chain, cfg, step, sigma, s)
-                          for sigma in cfg.demo_noise for s in cfg.seeds])  # fmt: skip
+    rows = run_check(cfg, kinds, chain)
     name = f"takeovers{suffix(cfg)}-noise{'_'.join(f'{x:g}' for x in cfg.demo_noise)}"
     figure = out / f"completion_vs_frames-{name}.png"
     plot(rows, figure, "IL and rounds of take-overs, mean ± std over seeds")

@@ -7,6 +7,8 @@ table pairs each arm with the re-imitated policy placement by placement, seed by
 
 from __future__ import annotations
 
+import sys
+
 import pytest
 
 from bench import dirl_steps, outcome_check
@@ -122,3 +124,23 @@ def test_noisy_demonstrations_get_their_own_chain_without_the_control(monkeypatc
     assert {r["demo_noise"] for r in rows} == {1.0}
     with pytest.raises(SystemExit):
         outcome_check.parse(["--set", "demo_noise=nan"])
+
+
+def test_a_resumed_check_counts_the_steps_an_earlier_run_finished(monkeypatch, tmp_path):
+    """So its ETA leaves them out (before, it priced them at a typical time: ~100 min said
+    with ~20 left when most steps were reused)."""
+    cfg = outcome_check.parse(["--set", f"out={tmp_path}", "--set", "seeds=0,1"])
+    monkeypatch.setattr(outcome_check, "demonstrations", lambda *a: None)
+    (tmp_path / "m0").touch()  # seed 0's step finished in an earlier invocation
+    seen = []
+
+    def chain(cfg, step, sigma, seed, rows):
+        step(f"train-noise0-seed{seed}-il", [sys.executable, "-c", "pass"], tmp_path / f"m{seed}")
+        seen.append(step)
+        rows.append(seed)
+
+    rows = outcome_check.run_check(cfg, {"train il": 2}, chain)
+    assert sorted(rows) == [0, 1] and (tmp_path / "m1").exists()
+    step = seen[-1]
+    assert step.finished_before == {"train il": 1} and not step.report_only
+    assert step.eta_s() == 0.0
