@@ -71,7 +71,7 @@ class TakeoverConfig:
 
 
 def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: list[dict]) -> None:
-    """IL → round 1's take-overs → imitation again → round 2's … and IL at the last round's
+    """IL → round 1's take-overs → imitation again → round 2's …, and IL at each round's
     frames, every policy evaluated, for one demonstration noise and seed."""
     study = cfg.study
     tag = f"noise{sigma:g}-seed{seed}"
