@@ -64,8 +64,8 @@ from pathlib import Path
 from bench.dirl_steps import (
     ROOT,
     ablations,
-    demonstrations,
     evaluate,
+    every_noise_demonstrations,
     frames_in,
     il_equal_data,
     iterate_cmd,
@@ -83,7 +83,7 @@ from bench.dirl_table import (
     plot,
     table,
 )
-from bench.study_steps import NotRun, StudyStep, finished_steps, run_chains
+from bench.study_steps import StudyStep, finished_steps, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
 
@@ -331,16 +331,10 @@ def run_study(cfg: StudyConfig, step: StudyStep) -> tuple[list[dict], list[str]]
     """Every step of the study through `step`: each noise's demonstrations, then the chains
     (one per noise and seed) side by side. Returns the rows and the steps not finished
     (--report)."""
-    missing = []
     chains = [(0.0, seed, cfg.iterations) for seed in cfg.seeds if 0.0 in cfg.demo_noise]
     chains += [(sigma, seed, cfg.robustness_iterations) for sigma in cfg.demo_noise if sigma
                for seed in cfg.robustness_seeds]  # fmt: skip
-    for sigma in cfg.demo_noise:  # every chain needs them: first, each with all `jobs`
-        try:
-            demonstrations(cfg, step, sigma, cfg.train_tracks, "expert")
-            demonstrations(cfg, step, sigma, cfg.extra_tracks, "extra")
-        except NotRun as exc:
-            missing.append(str(exc))
+    missing = every_noise_demonstrations(cfg, step)
     rows, stopped = run_chains([functools.partial(chain, cfg, step, *c) for c in chains])
     return rows, missing + stopped
 

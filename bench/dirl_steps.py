@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from bench.dirl_table import SEARCH_ROW
-from bench.study_steps import StudyStep
+from bench.study_steps import NotRun, StudyStep
 
 if TYPE_CHECKING:
     from bench.dirl_sim import StudyConfig
@@ -143,6 +143,21 @@ def demonstrations(cfg: StudyConfig, step: StudyStep, sigma: float, tracks: str,
          "--tracks", tracks, "--layouts", cfg.layout, "--episodes", str(cfg.expert_episodes),
          "--noise", str(sigma), "--jobs", str(cfg.all_jobs())), data / ".done")  # fmt: skip
     return data
+
+
+def every_noise_demonstrations(cfg: StudyConfig, step: StudyStep, extra: bool = True) -> list[str]:
+    """Each σ's demonstrations on the training placements (and, with `extra`, the second pool
+    IL at equal frames draws from): first, each with all `jobs`, since every chain needs them.
+    Returns the steps not finished when only counting or reporting (NotRun)."""
+    missing = []
+    for sigma in cfg.demo_noise:
+        try:
+            demonstrations(cfg, step, sigma, cfg.train_tracks, "expert")
+            if extra:
+                demonstrations(cfg, step, sigma, cfg.extra_tracks, "extra")
+        except NotRun as exc:
+            missing.append(str(exc))
+    return missing
 
 
 def evaluate(cfg: StudyConfig, step: StudyStep, name: str, onnx: Path, result: Path,

@@ -48,8 +48,8 @@ import numpy as np
 from bench.dirl_sim import StudyConfig, usable_cores
 from bench.dirl_steps import (
     ROOT,
-    demonstrations,
     evaluate,
+    every_noise_demonstrations,
     frames_in,
     il_equal_data,
     iterate_cmd,
@@ -57,7 +57,7 @@ from bench.dirl_steps import (
     reimitate_flags,
 )
 from bench.dirl_table import cell
-from bench.study_steps import NotRun, StudyStep, finished_steps, run_chains
+from bench.study_steps import StudyStep, finished_steps, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
 
@@ -126,8 +126,8 @@ def chain(cfg: CheckConfig, step: StudyStep, sigma: float, seed: int, rows: list
         models[arm] = (run, frames)
     previous, k = runs / "outcomes", cfg.outcome_iterations
     for i in range(2, k + 1):
-        data = [*data, *iteration_drives(study, step, tag, sigma, i, previous)]
-        frames = frames_in(data)
+        new = iteration_drives(study, step, tag, sigma, i, previous)
+        data, frames = [*data, *new], frames + frames_in(new)  # the new episodes counted once
         run = runs / outcomes_model(i)
         step(f"train-{tag}-{run.name}", iterate_cmd(study, data, run, "--seed", str(seed),
              "--init", str(previous), *arm_flags(cfg, "true")), run / ".done")  # fmt: skip
@@ -254,13 +254,7 @@ def run_check(cfg, kinds: dict[str, int], chain_fn, extra: bool = True) -> list[
     does), so the ETA leaves them out instead of guessing them at a typical time."""
 
     def walk(step: StudyStep) -> list[dict]:
-        for sigma in cfg.demo_noise:
-            try:
-                demonstrations(cfg.study, step, sigma, cfg.study.train_tracks, "expert")
-                if extra:
-                    demonstrations(cfg.study, step, sigma, cfg.study.extra_tracks, "extra")
-            except NotRun:  # only while counting: the chains stop at their first step too
-                pass
+        every_noise_demonstrations(cfg.study, step, extra)  # NotRun only while counting
         return run_chains([functools.partial(chain_fn, cfg, step, sigma, s)
                            for sigma in cfg.demo_noise for s in cfg.seeds])[0]  # fmt: skip
 

@@ -82,18 +82,19 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
          il / ".done")  # fmt: skip
     expert_frames = frames_in([expert])
     models = {"IL": (il, expert_frames)}
-    data, previous = [expert], il
+    data, frames, previous = [expert], expert_frames, il
     extra = Path(cfg.out) / "data" / f"extra-noise{sigma:g}"
     for k in range(1, cfg.rounds + 1):
-        data = [*data, takeover_drives(study, step, tag, sigma, k, previous, cfg.round_seconds,
-                                       kind="rounds")]  # fmt: skip
+        new = takeover_drives(study, step, tag, sigma, k, previous, cfg.round_seconds,
+                              kind="rounds")  # fmt: skip
+        data, frames = [*data, new], frames + frames_in([new])  # the new episodes counted once
         run = runs / f"takeovers{k}"
         step(f"train-{tag}-takeovers{k}", iterate_cmd(study, data, run, "--seed", str(seed),
              "--init", str(previous), *reimitate_flags(study), "--set", "world_model_steps=0",
              "--set", "refine_steps=0"), run / ".done")  # fmt: skip
-        models[f"takeovers{k}"], previous = (run, frames_in(data)), run
+        models[f"takeovers{k}"], previous = (run, frames), run
         # IL on as many frames: the demonstrations topped up from the second pool
-        equal = il_equal_data(expert, extra, expert_frames, models[f"takeovers{k}"][1])
+        equal = il_equal_data(expert, extra, expert_frames, frames)
         il_eq = runs / f"il-equal-takeovers{k}"
         step(
             f"train-{tag}-il-equal-takeovers{k}",

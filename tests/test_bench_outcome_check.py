@@ -130,7 +130,7 @@ def test_a_resumed_check_counts_the_steps_an_earlier_run_finished(monkeypatch, t
     """So its ETA leaves them out (before, it priced them at a typical time: ~100 min said
     with ~20 left when most steps were reused)."""
     cfg = outcome_check.parse(["--set", f"out={tmp_path}", "--set", "seeds=0,1"])
-    monkeypatch.setattr(outcome_check, "demonstrations", lambda *a: None)
+    monkeypatch.setattr(dirl_steps, "demonstrations", lambda *a: None)
     (tmp_path / "m0").touch()  # seed 0's step finished in an earlier invocation
     seen = []
 

@@ -99,7 +99,7 @@ def test_the_run_writes_its_results_table_and_completion_against_frames(monkeypa
                          "aggregate": {"completion_ratio": {"mean": c}}, "runs": runs})  # fmt: skip
 
     monkeypatch.setattr(takeover_check, "chain", fake_chain)
-    monkeypatch.setattr(outcome_check, "demonstrations", lambda *a: None)
+    monkeypatch.setattr(dirl_steps, "demonstrations", lambda *a: None)
     assert takeover_check.main(["--set", f"out={tmp_path}", "--set", "rounds=1",
                                 "--set", "demo_noise=0,1.0"]) == 0  # fmt: skip
     name = "takeovers-noise0_1"
