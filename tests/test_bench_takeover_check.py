@@ -61,6 +61,45 @@ def test_each_round_is_take_overs_by_the_previous_policy_and_imitation_again(mon
     assert str(data / "extra-noise1" / "1") not in argv["train-noise1-seed2-il-equal-takeovers1"]
 
 
+def test_refine_trains_one_world_model_and_refines_the_last_round_with_and_without_unc(
+    monkeypatch, tmp_path
+):
+    world = tmp_path / "runs" / "noise0-seed1" / "takeovers2-world-model"
+    world.mkdir(parents=True)
+    check = {"collision_auroc": 0.9, "rank_correlation": 0.4}
+    (world / "metrics.json").write_text(json.dumps({"counterfactual": check}))
+    argv, rows = _chain(monkeypatch, tmp_path, "--set", "rounds=2", "--set", "refine=true",
+                        seed=1)  # fmt: skip
+    runs, data = tmp_path / "runs" / "noise0-seed1", tmp_path / "data"
+    train = argv["train-noise0-seed1-takeovers2-world-model"]
+    # the world model: from the last round's policy, on every frame so far, its check on
+    for episodes in ("expert-noise0", "rounds-noise0-seed1-iter1", "rounds-noise0-seed1-iter2"):
+        assert str(data / episodes) in train
+    assert train[train.index("--init") + 1] == str(runs / "takeovers2")
+    study = takeover_check.parse([]).study
+    assert f"world_model_steps={study.world_model_steps}" in train and "refine_steps=0" in train
+    assert f"counterfactual_starts={study.counterfactual_starts}" in train
+    assert "reimitate=true" not in train  # the round's policy, as it was
+    # both refinements start from that world model and its policy, the same frames; -unc only
+    # drops the uncertainty term
+    refined = argv["train-noise0-seed1-takeovers2-refined"]
+    unc = argv["train-noise0-seed1-takeovers2-refined-unc"]
+    assert refined[refined.index("--init") + 1] == str(world)
+    assert "world_model_steps=0" in refined and f"refine_steps={study.refine_steps}" in refined
+    assert "refine_w_anchor=10.0" in refined and "refine_search=false" in refined
+    assert "--no-uncertainty" in unc and "--no-uncertainty" not in refined
+    assert [a for a in unc if a != "--no-uncertainty"] == [
+        a.replace("takeovers2-refined", "takeovers2-refined-unc") for a in refined
+    ]
+    by_model = {r["model"]: r for r in rows}
+    assert by_model["takeovers2+refined"]["frames"] == by_model["takeovers2"]["frames"] == 3000
+    assert by_model["takeovers2+refined-unc"]["counterfactual"] == check
+    assert "counterfactual" not in by_model["takeovers2"]
+    assert ("takeovers2+refined", "takeovers2+refined-unc") in takeover_check.pairs(
+        takeover_check.parse(["--set", "rounds=2", "--set", "refine=true"])
+    )
+
+
 def test_each_round_is_paired_with_imitation_at_its_frames():
     cfg = takeover_check.parse([])
     assert takeover_check.pairs(cfg) == [

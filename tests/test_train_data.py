@@ -230,6 +230,28 @@ def test_imitation_leaves_out_windows_into_a_collision(tmp_path):
     assert max(t for _, t in ds.index) == 29  # the last step is a start too
 
 
+def test_world_model_labels_the_half_second_before_a_takeover_a_collision(tmp_path):
+    """The paper counts a person's e-stop as a collision: with takeovers_as_collisions the
+    world model's `collisions` are 1 in the 0.5 s (5 steps at 10 Hz) up to each take-over edge,
+    as for a crash; without it, and for imitation's collision-free filter, only crashes count."""
+    from carrt.interfaces import Mode
+    from training.world_model_stage import collision_class_weight
+
+    A, M = Mode.AUTO, Mode.MANUAL
+    modes = [A] * 12 + [M] * 8
+    ep = _episode(tmp_path, 3, modes, overrides={12, 13})  # one take-over, held two steps
+    on = WindowDataset([ep], H, predict_size=16, takeovers_as_collisions=True)
+    off = WindowDataset([ep], H, predict_size=16)
+    assert np.flatnonzero(on.step_labels()).tolist() == [8, 9, 10, 11, 12]
+    assert not off.step_labels().any()
+    window = on[5]  # future steps 6..15
+    assert window["collisions"].tolist() == [0, 0, 1, 1, 1, 1, 1, 0, 0, 0]
+    assert not off[5]["collisions"].any()
+    assert collision_class_weight(on.step_labels()) == 3.0  # 15 safe / 5
+    assert collision_class_weight(off.step_labels()) == 1.0
+    assert len(ImitationDataset([ep], H)) == 8  # the take-over's labels are all kept
+
+
 def test_get_batch_matches_items_and_store_is_shared(episodes):
     store = FrameStore(episodes)
     a = WindowDataset(episodes, H, predict_size=16, store=store)

@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset, default_collate
 
-from carrt.episodes.reader import Episode, read_episode
+from carrt.episodes.reader import Episode, labels_before, read_episode
 from carrt.interfaces import IMAGE_SHAPE, Mode
 from training.episodes import (  # re-exported: the stages and tests import them from here
     data_digest,
@@ -112,6 +112,7 @@ class _Arrays:
     collision: np.ndarray  # (n,) float32: c
     label: np.ndarray  # (n,) float32: 1 where a* is the person's command (mode MANUAL)
     intervention: np.ndarray  # (n,) bool: MANUAL steps of a take-over from AUTO
+    takeover: np.ndarray  # (n,) float32: 1 in the 0.5 s before each take-over (override edge)
 
 
 def _intervention_steps(mode: np.ndarray, override: np.ndarray) -> np.ndarray:
@@ -122,6 +123,14 @@ def _intervention_steps(mode: np.ndarray, override: np.ndarray) -> np.ndarray:
         on = bool(override[t]) or (on and mode[t] == int(Mode.MANUAL))
         out[t] = on and mode[t] == int(Mode.MANUAL)
     return out
+
+
+def takeover_labels(ep: Episode) -> np.ndarray:
+    """1 for the steps in the 0.5 s before each take-over (override edge), as a collision's:
+    the person stopped the policy because it was about to crash (the paper's e-stop)."""
+    override = np.asarray(ep.steps["override"], dtype=bool)
+    edges = np.flatnonzero(override & ~np.concatenate(([False], override[:-1])))
+    return labels_before(np.asarray(ep.steps["frame_captured_at"], dtype=np.float64), edges)
 
 
 def _arrays(ep: Episode) -> _Arrays:
@@ -139,6 +148,7 @@ def _arrays(ep: Episode) -> _Arrays:
         collision=np.asarray(ep.collision, dtype=np.float32),
         label=(mode == int(Mode.MANUAL)).astype(np.float32),
         intervention=_intervention_steps(mode, override),
+        takeover=takeover_labels(ep).astype(np.float32),
     )
 
 
@@ -220,6 +230,9 @@ class WindowDataset(Dataset):
     action_mask (H,) 1 where step t+k exists (one more than mask at an episode's end).
     Past an episode's end every field repeats its last real row; the masks say so.
     collision_free_only keeps the starts whose c_t and window labels are all 0.
+    takeovers_as_collisions: `collisions` is also 1 in the 0.5 s before each take-over (the
+    world model's labels: the paper counts the person's e-stop as a collision; without it, drives
+    where the person always takes over in time hold no crash for the world model to learn).
 
     get_batch(items) builds a whole batch by tensor indexing (the trainer's fast path, no
     DataLoader); dataset[i] is get_batch([i]) without the batch dimension. Datasets over the
@@ -238,8 +251,10 @@ class WindowDataset(Dataset):
         *,
         predict_size: int = 16,
         collision_free_only: bool = False,
+        takeovers_as_collisions: bool = False,
         store: FrameStore | None = None,
     ) -> None:
+        self.takeovers_as_collisions = takeovers_as_collisions
         self.horizon = int(horizon)
         self.predict_size = int(predict_size)
         self.collision_free_only = collision_free_only
@@ -268,21 +283,19 @@ class WindowDataset(Dataset):
         self._speed = torch.from_numpy(s.cat("speed").astype(np.float32))
         self._expert = torch.from_numpy(s.cat("expert").astype(np.float32).reshape(-1, 2))
         self._executed = torch.from_numpy(s.cat("executed").astype(np.float32).reshape(-1, 2))
-        self._collision = torch.from_numpy(s.cat("collision").astype(np.float32))
+        labels = s.cat("collision").astype(np.float32)
+        if self.takeovers_as_collisions:
+            labels = np.maximum(labels, s.cat("takeover").astype(np.float32))
+        self._collision = torch.from_numpy(labels)
         self._start = torch.from_numpy(s.offsets[self.index[:, 0]] + self.index[:, 1])
         self._end = torch.from_numpy(s.offsets[self.index[:, 0] + 1] - 1)  # last step
 
     def __len__(self) -> int:
         return len(self.index)
 
-    @property
-    def collision_fraction(self) -> float:
-        """Share of the valid future labels that are collisions (for class weights)."""
-        pos = cnt = 0
-        for i, t in self.index:
-            c = self._eps[i].collision[t + 1 : t + 1 + self.horizon]
-            pos, cnt = pos + int(c.sum()), cnt + len(c)
-        return pos / cnt if cnt else 0.0
+    def step_labels(self) -> np.ndarray:
+        """Every step's collision label as this dataset reads it (for class weights)."""
+        return self._collision.numpy()
 
     def _steps(self, items) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(start (B,), end (B,), t+k (B,H) clamped at the episode's last step), global steps."""

@@ -149,13 +149,18 @@ def imitation_metrics(policy, dataset, device, *, limit=2048, batch_size=64) -> 
     }
 
 
-def evaluate(policy, world_model, episodes, profile, device, *, limit: int = 2048):
-    """(metrics, arrays) on the given (held-out) episodes; arrays feed figures.py."""
+def evaluate(policy, world_model, episodes, profile, device, *, limit: int = 2048,
+             takeovers_as_collisions: bool = False):  # fmt: skip
+    """(metrics, arrays) on the given (held-out) episodes, the world model's collision labels
+    as it was trained on them (takeovers_as_collisions); arrays feed figures.py."""
     from training.data import FrameStore, ImitationDataset, WindowDataset
 
     h, size = profile.horizon, profile.predict_size
     store = FrameStore(episodes)
-    windows = WindowDataset(episodes, h, predict_size=size, store=store)
+    windows = WindowDataset(
+        episodes, h, predict_size=size, takeovers_as_collisions=takeovers_as_collisions,
+        store=store,
+    )  # fmt: skip
     free = ImitationDataset(episodes, h, store=store)
     policy.to(device)
     world_model.to(device)

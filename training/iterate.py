@@ -262,10 +262,14 @@ class StageData:
         self.cfg, self.train_eps, self.val_eps, self.horizon = cfg, train_eps, val_eps, h
         self.store = FrameStore(train_eps)
         self.val_store = FrameStore(val_eps) if val_eps else None
-        self.windows = WindowDataset(train_eps, h, predict_size=size, store=self.store)
-        self.val_windows = (
-            WindowDataset(val_eps, h, predict_size=size, store=self.val_store) if val_eps else None
+        takeovers = cfg.takeovers_as_collisions
+        self.windows = WindowDataset(
+            train_eps, h, predict_size=size, takeovers_as_collisions=takeovers, store=self.store
         )
+        self.val_windows = (
+            WindowDataset(val_eps, h, predict_size=size, takeovers_as_collisions=takeovers,
+                          store=self.val_store) if val_eps else None
+        )  # fmt: skip
         if len(self.windows) == 0:
             raise UsageError("no training windows: every training episode has fewer than 2 steps")
 
@@ -294,7 +298,7 @@ def train_stage(stage, cfg, policy, world_model, data: StageData, norm, ctx, res
         free, val_free = data.imitation()
         return train_imitation(cfg, policy, free, ctx, resume=resume, val_dataset=val_free)
     if stage == "world_model":
-        weight = cfg.collision_weight or collision_class_weight(data.train_eps)
+        weight = cfg.collision_weight or collision_class_weight(data.windows.step_labels())
         return train_world_model(
             cfg, world_model, data.windows, norm, ctx, collision_weight=weight,
             policy=policy, resume=resume, val_dataset=data.val_windows,

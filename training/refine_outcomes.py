@@ -34,7 +34,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from carrt.episodes.reader import labels_before
 from carrt.interfaces import Mode
 from training.data import WindowDataset
 from training.imitation import imitation_loss
@@ -121,7 +120,7 @@ class OutcomeDataset(WindowDataset):
         self.window_weight = torch.ones(len(self.index))
 
     def _episode_returns(self, ep, a) -> np.ndarray:
-        event = np.maximum(a.collision, _takeover_labels(ep)).astype(bool)
+        event = np.maximum(a.collision, a.takeover).astype(bool)
         return window_returns(a.speed, event, self.horizon, *self._w)
 
     def _build_index(self) -> np.ndarray:
@@ -146,13 +145,6 @@ def _auto_steps(ep) -> np.ndarray:
     mode = np.asarray(ep.steps["mode"], dtype=np.int64)
     override = np.asarray(ep.steps["override"], dtype=bool)
     return (mode == int(Mode.AUTO)) & ~override
-
-
-def _takeover_labels(ep) -> np.ndarray:
-    """1 for the steps in the 0.5 s before each take-over (override edge), as a collision's."""
-    override = np.asarray(ep.steps["override"], dtype=bool)
-    edges = np.flatnonzero(override & ~np.concatenate(([False], override[:-1])))
-    return labels_before(np.asarray(ep.steps["frame_captured_at"], dtype=np.float64), edges)
 
 
 @torch.no_grad()

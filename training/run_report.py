@@ -42,14 +42,15 @@ def finish_run(
     cfg, out: Path, *, policy, world_model, norm, train_eps, val_eps, episodes, digest,
     results, iteration, device, writer=None, world_size=1,
 ) -> dict:  # fmt: skip
-    from training.data import WindowDataset, placement_key
+    from training.data import WindowDataset, placement_key, takeover_labels
 
     held_out = bool(val_eps)
     eval_eps = val_eps if held_out else train_eps
     profile = cfg.profile_obj
     metrics, arrays = evaluate(
-        policy, world_model, eval_eps, profile, device, limit=cfg.eval_windows
-    )
+        policy, world_model, eval_eps, profile, device, limit=cfg.eval_windows,
+        takeovers_as_collisions=cfg.takeovers_as_collisions,
+    )  # fmt: skip
     metrics["held_out"] = held_out
     if writer is not None:
         for k, v in metrics.items():
@@ -99,6 +100,7 @@ def finish_run(
         "train_frames": int(sum(ep.n for ep in train_eps)),
         "held_out_frames": int(sum(ep.n for ep in val_eps)),
         "collision_frames": int(sum(int(ep.collision.sum()) for ep in episodes)),
+        "takeover_frames": int(sum(int(takeover_labels(ep).sum()) for ep in episodes)),
         "train_digest": digest,
     }
     record = {
@@ -126,7 +128,8 @@ def render(cfg, r: dict, export_lines: list[str]) -> str:
         "## Data",
         "",
         f"- episodes: {d['episodes']} ({d['frames']} frames; {d['collision_frames']} frames "
-        "labelled collision)",
+        f"labelled collision, {d['takeover_frames']} in the 0.5 s before a take-over"
+        f"{' (collisions for the world model)' if cfg.takeovers_as_collisions else ''})",
         f"- split by placement: {len(d['train_episodes'])} train episodes "
         f"({d.get('train_placements', '?')} placements, {d['train_frames']} frames), "
         f"{len(d['held_out_episodes'])} held out ({d['held_out_frames']} frames) on "

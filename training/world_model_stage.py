@@ -56,9 +56,8 @@ class Targets(nn.Module):
         return normalised * self.speed_std + self.speed_mean
 
 
-def collision_class_weight(episodes, max_weight: float = 100.0) -> float:
-    """n_safe / n_collision over the episodes' step labels, in [1, max_weight]."""
-    labels = np.concatenate([np.asarray(ep.collision) for ep in episodes]) if episodes else []
+def collision_class_weight(labels, max_weight: float = 100.0) -> float:
+    """n_safe / n_collision over every step's collision label, in [1, max_weight]."""
     pos = float(np.sum(labels))
     if pos == 0:
         return 1.0
