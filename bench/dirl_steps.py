@@ -216,15 +216,25 @@ def iteration_drives(
     before a crash (labelled states the policy reached, with the demonstrations' σ). Each
     iteration drives with its own simulator seeds: an iteration that kept its start would
     otherwise record the same episodes again."""
-    model = str(previous / "policy.onnx")
-    drives = Path(cfg.out) / "data" / f"drives-{tag}-iter{k}"
-    step(f"drive-{tag}-iter{k}", py("-m", "training.sim_data", "drives", "--model", model,
-         "--out", str(drives), "--tracks", iteration_tracks(cfg, k), "--layouts", cfg.layout,
-         "--seconds", str(cfg.drive_seconds), "--jobs", str(cfg.step_jobs()),
-         *drive_seeds(k), *explore_args(cfg)), drives / ".done")  # fmt: skip
+    drives = exploration_drives(cfg, step, tag, k, previous)
     if not cfg.takeover_seconds:
         return [drives]
     return [drives, takeover_drives(cfg, step, tag, sigma, k, previous, cfg.takeover_seconds)]
+
+
+def exploration_drives(cfg: StudyConfig, step: StudyStep, tag: str, k: int, previous: Path,
+                       kind: str = "drives") -> Path:  # fmt: skip
+    """The previous policy drives iteration k's placements alone, drive_seconds each, with
+    exploration noise (every crash labelled and followed by the auto-reset), into
+    OUT/data/<kind>-<tag>-iter<k>: the crashes from varied actions a world model learns from."""
+    model = str(previous / "policy.onnx")
+    drives = Path(cfg.out) / "data" / f"{kind}-{tag}-iter{k}"
+    name = f"drive-{tag}-iter{k}" if kind == "drives" else f"drive-{tag}-{kind}{k}"
+    step(name, py("-m", "training.sim_data", "drives", "--model", model,
+         "--out", str(drives), "--tracks", iteration_tracks(cfg, k), "--layouts", cfg.layout,
+         "--seconds", str(cfg.drive_seconds), "--jobs", str(cfg.step_jobs()),
+         *drive_seeds(k), *explore_args(cfg)), drives / ".done")  # fmt: skip
+    return drives
 
 
 def takeover_drives(cfg: StudyConfig, step: StudyStep, tag: str, sigma: float, k: int,

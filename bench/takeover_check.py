@@ -47,6 +47,7 @@ from pathlib import Path
 from bench.dirl_sim import StudyConfig
 from bench.dirl_steps import (
     evaluate,
+    exploration_drives,
     frames_in,
     il_equal_data,
     iterate_cmd,
@@ -76,6 +77,15 @@ class TakeoverConfig:
     round_seconds: float = 50.0  # simulated s of take-over driving per placement and round
     demo_noise: tuple[float, ...] = (0.0,)  # σ of the demonstrations and the take-overs
     refine: bool = False  # + a world model on the last round's frames and refinement in it
+    # with refine: also the paper's pure form of refinement in the same world model, with and
+    # without its uncertainty term (no anchor, no imitation term, uncentred gradient, raw p̂):
+    # the setting of the paper's Table II, where the term is what keeps the policy safe
+    refine_paper_form: bool = False
+    # with refine: also a second world model that learns the last round's policy's exploration
+    # drives too (`sim_data drives --explore`, the last round's placements, the study's
+    # drive_seconds: crashes from varied actions, as the study's world models had), and the same
+    # refinements in it; more frames than the round, so paired with the round, not IL
+    refine_with_drives: bool = False
     eval_tracks: str = StudyConfig.eval_tracks
     parallel: int = 2
     study: StudyConfig = field(default_factory=StudyConfig)
@@ -127,38 +137,74 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
             "aggregate": out["aggregate"],
             "runs": out["runs"],
         }
-        if "+refined" in model:  # the world model it was refined in, and its check
-            world = world_model_run(cfg, tag)
+        if "+" in model:  # the world model it was refined in, and its check
+            world = world_model_run(cfg, tag, "drives" if "+drives+" in model else "")
             metrics = json.loads((world / "metrics.json").read_text())
             row |= {"world_model": str(world), "counterfactual": metrics.get("counterfactual")}
         rows.append(row)
 
 
-def world_model_run(cfg: TakeoverConfig, tag: str) -> Path:
-    """The run whose world model learnt every frame up to the last round (`refine`)."""
-    return Path(cfg.out) / "runs" / tag / f"takeovers{cfg.rounds}-world-model"
+# iterate.py settings of the paper's refinement: every safeguard of training/config.py off
+PAPER_FORM = [
+    *("--set", "refine_w_anchor=0", "--set", "refine_w_imitation=0"),
+    *("--set", "refine_center_gradient=false", "--set", "collision_prior_correction=false"),
+]
+
+
+def world_model_run(cfg: TakeoverConfig, tag: str, source: str = "") -> Path:
+    """The run whose world model learnt every frame up to the last round (`refine`), and the
+    last round's exploration drives with source "drives" (`refine_with_drives`)."""
+    name = "-".join(x for x in (f"takeovers{cfg.rounds}", source, "world-model") if x)
+    return Path(cfg.out) / "runs" / tag / name
 
 
 def refined(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data: list[Path],
             last: Path, frames: int) -> dict[str, tuple[Path, int]]:  # fmt: skip
     """The last round's policy refined in a world model of every frame so far, with and
-    without the uncertainty term: {row: (run, frames)}. The world model is trained once (its
-    counterfactual check in its run's metrics.json); each refinement starts from it."""
+    without the uncertainty term (and in the paper's form): {row: (run, frames)}; with
+    `refine_with_drives`, the same in a world model that also learnt the last policy's
+    exploration drives."""
+    out = refinements(cfg, step, tag, seed, data, last, frames, "")
+    if cfg.refine_with_drives:
+        drives = exploration_drives(cfg.study, step, tag, cfg.rounds, last, kind="round-drives")
+        more = [*data, drives]
+        out |= refinements(cfg, step, tag, seed, more, last, frames + frames_in([drives]), "drives")
+    return out
+
+
+def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data: list[Path],
+                last: Path, frames: int, source: str) -> dict[str, tuple[Path, int]]:  # fmt: skip
+    """One world model on `data` from the last round's policy (its counterfactual check in its
+    run's metrics.json), then each refinement variant from it."""
     study, k = cfg.study, cfg.rounds
-    runs, world = Path(cfg.out) / "runs" / tag, world_model_run(cfg, tag)
+    runs, world = Path(cfg.out) / "runs" / tag, world_model_run(cfg, tag, source)
+    prefix = f"takeovers{k}-{source}-" if source else f"takeovers{k}-"
     settings = run_settings(study, seed, every=0)  # the gradient, the study's safeguards
-    step(f"train-{tag}-takeovers{k}-world-model", iterate_cmd(study, data, world, "--init",
+    step(f"train-{tag}-{world.name}", iterate_cmd(study, data, world, "--init",
          str(last), *settings, "--set", f"world_model_steps={study.world_model_steps}",
          "--set", "refine_steps=0"), world / ".done")  # fmt: skip
-    out = {}
-    for name, flags in (("refined", []), ("refined-unc", ["--no-uncertainty"])):
-        run = runs / f"takeovers{k}-{name}"
-        step(f"train-{tag}-takeovers{k}-{name}", iterate_cmd(study, data, run, "--init",
+    out, unc = {}, ["--no-uncertainty"]
+    for name in forms(cfg):
+        flags = [*(PAPER_FORM if name.startswith("paper") else []),
+                 *(unc if name.endswith("-unc") else [])]  # fmt: skip
+        run = runs / f"{prefix}{name}"
+        step(f"train-{tag}-{run.name}", iterate_cmd(study, data, run, "--init",
              str(world), *settings, "--set", "world_model_steps=0", "--set",
              f"refine_steps={study.refine_steps}", "--set", "counterfactual_starts=0", *flags),
              run / ".done")  # fmt: skip
-        out[f"takeovers{k}+{name}"] = (run, frames)
+        out[f"takeovers{k}+{source + '+' if source else ''}{name}"] = (run, frames)
     return out
+
+
+def forms(cfg: TakeoverConfig) -> list[str]:
+    """The refinement variants each world model gets: the study's, the paper's, each -unc."""
+    bases = ("refined", "paper") if cfg.refine_paper_form else ("refined",)
+    return [x for base in bases for x in (base, f"{base}-unc")]
+
+
+def sources(cfg: TakeoverConfig) -> list[str]:
+    """The world models refinement runs in: "" (the rounds' frames), "drives" (+ drives)."""
+    return ["", "drives"] if cfg.refine_with_drives else [""]
 
 
 def pairs(cfg: TakeoverConfig) -> list[tuple[str, str]]:
@@ -171,10 +217,12 @@ def pairs(cfg: TakeoverConfig) -> list[tuple[str, str]]:
         out += [(f"takeovers{k}", f"takeovers{k - 1}")] if k > 1 else []
     if cfg.refine:
         k = cfg.rounds
-        for name in ("refined", "refined-unc"):
-            out += [(f"takeovers{k}+{name}", f"takeovers{k}"),
-                    (f"takeovers{k}+{name}", f"IL-equal-takeovers{k}")]  # fmt: skip
-        out += [(f"takeovers{k}+refined", f"takeovers{k}+refined-unc")]
+        for source in sources(cfg):
+            head = f"takeovers{k}+{source + '+' if source else ''}"
+            for name in forms(cfg):
+                out += [(head + name, f"takeovers{k}")]
+                out += [(head + name, f"IL-equal-takeovers{k}")] if not source else []
+            out += [(head + name, f"{head}{name}-unc") for name in forms(cfg)[::2]]
     return out
 
 
@@ -198,13 +246,15 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     n, r = len(cfg.demo_noise) * len(cfg.seeds), cfg.rounds
+    refined_rows = cfg.refine * len(forms(cfg)) * len(sources(cfg))
     kinds = {"demos": 2 * len(cfg.demo_noise), "train il": n, "takeovers": r * n,
              "train takeovers": r * n, "train il-equal-takeovers": r * n,
-             "eval": (1 + 2 * r + 2 * cfg.refine) * n}  # fmt: skip
+             "eval": (1 + 2 * r + refined_rows) * n}  # fmt: skip
     if cfg.refine:
-        kinds |= {
-            f"train takeovers{r}-{name}": n for name in ("world-model", "refined", "refined-unc")
-        }
+        for source in sources(cfg):
+            head = f"train takeovers{r}-{source + '-' if source else ''}"
+            kinds |= {head + name: n for name in ["world-model", *forms(cfg)]}
+        kinds |= {"drive": n} if cfg.refine_with_drives else {}
     rows = run_check(cfg, kinds, chain)
     name = f"takeovers{suffix(cfg)}-noise{'_'.join(f'{x:g}' for x in cfg.demo_noise)}"
     figure = out / f"completion_vs_frames-{name}.png"

@@ -100,6 +100,66 @@ def test_refine_trains_one_world_model_and_refines_the_last_round_with_and_witho
     )
 
 
+def test_the_papers_form_refines_in_the_same_world_model_with_every_safeguard_off(
+    monkeypatch, tmp_path
+):
+    world = tmp_path / "runs" / "noise0-seed0" / "takeovers1-world-model"
+    world.mkdir(parents=True)
+    (world / "metrics.json").write_text(json.dumps({"counterfactual": None}))
+    sets = ["--set", "rounds=1", "--set", "refine=true", "--set", "refine_paper_form=true"]
+    argv, rows = _chain(monkeypatch, tmp_path, *sets)
+    paper, unc = (
+        argv["train-noise0-seed0-takeovers1-paper"],
+        argv["train-noise0-seed0-takeovers1-paper-unc"],
+    )
+    safeguarded = argv["train-noise0-seed0-takeovers1-refined"]
+    for args in (paper, unc):
+        assert args[args.index("--init") + 1] == str(world)
+        # the paper's form wins over the study's safeguards: iterate.py applies --set in order
+        for setting in ("refine_w_anchor", "refine_w_imitation", "refine_center_gradient",
+                        "collision_prior_correction"):  # fmt: skip
+            given = [a for a in args if a.startswith(f"{setting}=")]
+            assert given[-1] in (f"{setting}=0", f"{setting}=false"), given
+        assert given[0] in safeguarded
+    assert "--no-uncertainty" in unc and "--no-uncertainty" not in paper
+    assert {"takeovers1+paper", "takeovers1+paper-unc"} <= {r["model"] for r in rows}
+    assert ("takeovers1+paper", "takeovers1+paper-unc") in takeover_check.pairs(
+        takeover_check.parse(sets)
+    )
+
+
+def test_refine_with_drives_adds_a_world_model_that_also_learns_exploration_drives(
+    monkeypatch, tmp_path
+):
+    runs, data = tmp_path / "runs" / "noise0-seed0", tmp_path / "data"
+    for name in ("takeovers1-world-model", "takeovers1-drives-world-model"):
+        (runs / name).mkdir(parents=True)
+        (runs / name / "metrics.json").write_text(json.dumps({"counterfactual": {"of": name}}))
+    sets = ["--set", "rounds=1", "--set", "refine=true", "--set", "refine_with_drives=true"]
+    argv, rows = _chain(monkeypatch, tmp_path, *sets)
+    drive = argv["drive-noise0-seed0-round-drives1"]
+    # the last round's policy alone, with exploration noise, on its own round's placements
+    assert "drives" in drive and "--explore" in drive
+    assert str(runs / "takeovers1" / "policy.onnx") in drive
+    assert drive[drive.index("--out") + 1] == str(data / "round-drives-noise0-seed0-iter1")
+    plain = argv["train-noise0-seed0-takeovers1-world-model"]  # the rounds' frames alone
+    more = argv["train-noise0-seed0-takeovers1-drives-world-model"]
+    assert str(data / "round-drives-noise0-seed0-iter1") in more
+    assert str(data / "round-drives-noise0-seed0-iter1") not in plain
+    unc = argv["train-noise0-seed0-takeovers1-drives-refined-unc"]
+    assert unc[unc.index("--init") + 1] == str(runs / "takeovers1-drives-world-model")
+    assert "--no-uncertainty" in unc
+    by_model = {r["model"]: r for r in rows}
+    assert by_model["takeovers1+drives+refined"]["frames"] == 3000  # 1,000 more: the drives
+    assert by_model["takeovers1+drives+refined"]["counterfactual"] == {
+        "of": "takeovers1-drives-world-model"
+    }
+    assert by_model["takeovers1+refined"]["counterfactual"] == {"of": "takeovers1-world-model"}
+    pairs = takeover_check.pairs(takeover_check.parse(sets))
+    assert ("takeovers1+drives+refined", "takeovers1+drives+refined-unc") in pairs
+    assert ("takeovers1+drives+refined", "IL-equal-takeovers1") not in pairs  # more frames
+
+
 def test_each_round_is_paired_with_imitation_at_its_frames():
     cfg = takeover_check.parse([])
     assert takeover_check.pairs(cfg) == [
