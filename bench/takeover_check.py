@@ -77,6 +77,9 @@ class TakeoverConfig:
     round_seconds: float = 50.0  # simulated s of take-over driving per placement and round
     demo_noise: tuple[float, ...] = (0.0,)  # σ of the demonstrations and the take-overs
     refine: bool = False  # + a world model on the last round's frames and refinement in it
+    # the world models' labels (IterateConfig.takeovers_as_collisions): the 0.5 s before each
+    # take-over a collision too, as the table of 2026-11-26 ran (the paper's e-stop = collision)
+    takeovers_as_collisions: bool = True
     # with refine: also the paper's pure form of refinement in the same world model, with and
     # without its uncertainty term (no anchor, no imitation term, uncentred gradient, raw p̂):
     # the setting of the paper's Table II, where the term is what keeps the policy safe
@@ -180,9 +183,10 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
     runs, world = Path(cfg.out) / "runs" / tag, world_model_run(cfg, tag, source)
     prefix = f"takeovers{k}-{source}-" if source else f"takeovers{k}-"
     settings = run_settings(study, seed, every=0)  # the gradient, the study's safeguards
+    labels = f"takeovers_as_collisions={str(cfg.takeovers_as_collisions).lower()}"
     step(f"train-{tag}-{world.name}", iterate_cmd(study, data, world, "--init",
          str(last), *settings, "--set", f"world_model_steps={study.world_model_steps}",
-         "--set", "refine_steps=0"), world / ".done")  # fmt: skip
+         "--set", "refine_steps=0", "--set", labels), world / ".done")  # fmt: skip
     out, unc = {}, ["--no-uncertainty"]
     for name in forms(cfg):
         flags = [*(PAPER_FORM if name.startswith("paper") else []),
@@ -190,7 +194,8 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
         run = runs / f"{prefix}{name}"
         step(f"train-{tag}-{run.name}", iterate_cmd(study, data, run, "--init",
              str(world), *settings, "--set", "world_model_steps=0", "--set",
-             f"refine_steps={study.refine_steps}", "--set", "counterfactual_starts=0", *flags),
+             f"refine_steps={study.refine_steps}", "--set", "counterfactual_starts=0",
+             "--set", labels, *flags),
              run / ".done")  # fmt: skip
         out[f"takeovers{k}+{source + '+' if source else ''}{name}"] = (run, frames)
     return out
@@ -258,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = run_check(cfg, kinds, chain)
     name = f"takeovers{suffix(cfg)}-noise{'_'.join(f'{x:g}' for x in cfg.demo_noise)}"
     figure = out / f"completion_vs_frames-{name}.png"
-    plot(rows, figure, "IL and rounds of take-overs, mean ± std over seeds")
+    refined = ", the last refined in world models" if cfg.refine else ""
+    plot(rows, figure, f"IL and rounds of take-overs{refined}, mean ± std over seeds")
     text = write_results(cfg, rows, started, f"-{name}", pairs(cfg))
     print("\n" + text + f"\n\nwritten: {out}/results-{name}.json, table-{name}.md, {figure}")
     return 0

@@ -80,6 +80,7 @@ def test_refine_trains_one_world_model_and_refines_the_last_round_with_and_witho
     assert f"world_model_steps={study.world_model_steps}" in train and "refine_steps=0" in train
     assert f"counterfactual_starts={study.counterfactual_starts}" in train
     assert "reimitate=true" not in train  # the round's policy, as it was
+    assert "takeovers_as_collisions=true" in train  # as the table of 2026-11-26 ran
     # both refinements start from that world model and its policy, the same frames; -unc only
     # drops the uncertainty term
     refined = argv["train-noise0-seed1-takeovers2-refined"]
