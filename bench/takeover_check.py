@@ -33,7 +33,10 @@ from every frame so far (the 0.5 s before each take-over labelled a collision, a
 counts its e-stops: IterateConfig.takeovers_as_collisions) and its check runs on the held-out
 placements 200-204; the policy is refined in it with the study's gradient and safeguards
 ("takeovers<k>+refined") and without the uncertainty term ("takeovers<k>+refined-unc", the
-paper's ablation), on the same frames as the round.
+paper's ablation), on the same frames as the round; `refine_paper_form` adds the paper's
+form (no safeguards) ± unc, `refine_with_drives` a world model that also learns the last
+policy's exploration drives, `refine_crashes_only` one more on those frames without the
+take-over labels.
 """
 
 from __future__ import annotations
@@ -89,6 +92,10 @@ class TakeoverConfig:
     # drive_seconds: crashes from varied actions, as the study's world models had), and the same
     # refinements in it; more frames than the round, so paired with the round, not IL
     refine_with_drives: bool = False
+    # with refine_with_drives: a third world model on the same frames with crash labels alone
+    # (takeovers_as_collisions false: measured, the take-over labels taught the others that
+    # speed collides) and the same refinements in it
+    refine_crashes_only: bool = False
     eval_tracks: str = StudyConfig.eval_tracks
     parallel: int = 2
     study: StudyConfig = field(default_factory=StudyConfig)
@@ -141,7 +148,8 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
             "runs": out["runs"],
         }
         if "+" in model:  # the world model it was refined in, and its check
-            world = world_model_run(cfg, tag, "drives" if "+drives+" in model else "")
+            source = model.split("+")[1] if model.count("+") == 2 else ""
+            world = world_model_run(cfg, tag, source)
             metrics = json.loads((world / "metrics.json").read_text())
             row |= {"world_model": str(world), "counterfactual": metrics.get("counterfactual")}
         rows.append(row)
@@ -171,7 +179,9 @@ def refined(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data: lis
     if cfg.refine_with_drives:
         drives = exploration_drives(cfg.study, step, tag, cfg.rounds, last, kind="round-drives")
         more = [*data, drives]
-        out |= refinements(cfg, step, tag, seed, more, last, frames + frames_in([drives]), "drives")
+        more_frames = frames + frames_in([drives])
+        for source in sources(cfg)[1:]:
+            out |= refinements(cfg, step, tag, seed, more, last, more_frames, source)
     return out
 
 
@@ -183,7 +193,8 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
     runs, world = Path(cfg.out) / "runs" / tag, world_model_run(cfg, tag, source)
     prefix = f"takeovers{k}-{source}-" if source else f"takeovers{k}-"
     settings = run_settings(study, seed, every=0)  # the gradient, the study's safeguards
-    labels = f"takeovers_as_collisions={str(cfg.takeovers_as_collisions).lower()}"
+    takeovers = cfg.takeovers_as_collisions and source != "drives-crashes-only"
+    labels = f"takeovers_as_collisions={str(takeovers).lower()}"
     step(f"train-{tag}-{world.name}", iterate_cmd(study, data, world, "--init",
          str(last), *settings, "--set", f"world_model_steps={study.world_model_steps}",
          "--set", "refine_steps=0", "--set", labels), world / ".done")  # fmt: skip
@@ -208,8 +219,10 @@ def forms(cfg: TakeoverConfig) -> list[str]:
 
 
 def sources(cfg: TakeoverConfig) -> list[str]:
-    """The world models refinement runs in: "" (the rounds' frames), "drives" (+ drives)."""
-    return ["", "drives"] if cfg.refine_with_drives else [""]
+    """The world models refinement runs in: "" (the rounds' frames), "drives" (+ drives),
+    "drives-crashes-only" (+ drives, take-overs not labelled collisions)."""
+    more = ["drives", *(["drives-crashes-only"] if cfg.refine_crashes_only else [])]
+    return ["", *more] if cfg.refine_with_drives else [""]
 
 
 def pairs(cfg: TakeoverConfig) -> list[tuple[str, str]]:

@@ -161,6 +161,39 @@ def test_refine_with_drives_adds_a_world_model_that_also_learns_exploration_driv
     assert ("takeovers1+drives+refined", "IL-equal-takeovers1") not in pairs  # more frames
 
 
+def test_refine_crashes_only_adds_a_world_model_without_the_take_over_labels(monkeypatch, tmp_path):
+    runs = tmp_path / "runs" / "noise0-seed0"
+    for source in ("", "drives-", "drives-crashes-only-"):
+        (runs / f"takeovers1-{source}world-model").mkdir(parents=True)
+        (runs / f"takeovers1-{source}world-model" / "metrics.json").write_text(
+            json.dumps({"counterfactual": {"of": source}})
+        )
+    sets = ["--set", "rounds=1", "--set", "refine=true", "--set", "refine_with_drives=true",
+            "--set", "refine_crashes_only=true"]  # fmt: skip
+    argv, rows = _chain(monkeypatch, tmp_path, *sets)
+    labelled = argv["train-noise0-seed0-takeovers1-drives-world-model"]
+    crashes = argv["train-noise0-seed0-takeovers1-drives-crashes-only-world-model"]
+    assert "takeovers_as_collisions=false" in crashes and "takeovers_as_collisions=true" in labelled
+    # the same episodes, steps and seed: only the labels differ
+    assert [a for a in crashes if "takeovers_as_collisions" not in a] == [
+        a.replace("drives-world-model", "drives-crashes-only-world-model")
+        for a in labelled
+        if "takeovers_as_collisions" not in a
+    ]
+    refined = argv["train-noise0-seed0-takeovers1-drives-crashes-only-refined-unc"]
+    assert refined[refined.index("--init") + 1] == str(
+        runs / "takeovers1-drives-crashes-only-world-model"
+    )
+    by_model = {r["model"]: r for r in rows}
+    assert by_model["takeovers1+drives-crashes-only+refined"]["counterfactual"] == {
+        "of": "drives-crashes-only-"
+    }
+    assert (
+        "takeovers1+drives-crashes-only+refined",
+        "takeovers1+drives-crashes-only+refined-unc",
+    ) in takeover_check.pairs(takeover_check.parse(sets))
+
+
 def test_each_round_is_paired_with_imitation_at_its_frames():
     cfg = takeover_check.parse([])
     assert takeover_check.pairs(cfg) == [
