@@ -63,7 +63,10 @@ def finish_run(
         histories = {name: r.history for name, r in results.items()}
         loss_curves(histories, fig_dir / "loss_curves.png")
         uncertainty_vs_error(arrays, fig_dir / "uncertainty_vs_error.png")
-        windows = WindowDataset(eval_eps, profile.horizon, predict_size=profile.predict_size)
+        windows = WindowDataset(
+            eval_eps, profile.horizon, predict_size=profile.predict_size,
+            takeovers_as_collisions=cfg.takeovers_as_collisions,
+        )  # fmt: skip
         reveries(world_model, windows, device, fig_dir / "reveries.png")
         figures = {
             "Loss curves": "figures/loss_curves.png",
