@@ -151,7 +151,9 @@ class StudyStep:
             left = 0.0
             for kind, n in self.plan.items():
                 each = mean.get(kind, TYPICAL_S[kind] * scale if kind in TYPICAL_S else other)
-                ahead = self.finished_before[kind] - self.found_done[kind]  # finished, not reached
+                # finished, not reached yet; never negative: the walk stops a chain at its first
+                # unfinished step, so finished steps after it are found only when reached
+                ahead = max(self.finished_before[kind] - self.found_done[kind], 0)
                 left += max(n - self.done_by_kind[kind] - ahead, 0) * each
         return left / self.parallel
 

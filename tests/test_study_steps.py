@@ -125,3 +125,25 @@ def test_a_resumed_study_leaves_its_finished_steps_out_of_the_eta(tmp_path):
     assert resumed.eta_s() == pytest.approx(2 * TYPICAL_S["drive"])
     walk(resumed)  # the drives run; the evaluations are reached, not counted twice
     assert len(intervals(tmp_path)) == 2 and resumed.eta_s() == 0.0
+
+
+def test_finished_steps_behind_an_unfinished_one_are_not_counted_twice(tmp_path):
+    """The walk stops a chain at its first unfinished step (report only), so an evaluation
+    finished earlier but after it is found only when the chain reaches it: then it is done,
+    not left (the take-over check of 2026-11-26 said "ETA ~140 min" with 41 steps left)."""
+    (tmp_path / "markers").mkdir()
+    (tmp_path / "markers" / "eval-1").touch()  # behind drive-0 in its chain
+    plan = {"drive": 1, "eval": 1}
+
+    def walk(step: StudyStep) -> None:
+        def one_chain(rows):
+            step("drive-0", [sys.executable, "-c", ""], tmp_path / "markers" / "drive-0")
+            step("eval-1", [sys.executable, "-c", ""], tmp_path / "markers" / "eval-1")
+
+        run_chains([one_chain])
+
+    finished = finished_steps(tmp_path, plan, walk)
+    assert finished == {}, "the walk stopped at drive-0"
+    resumed = StudyStep(tmp_path, plan, parallel=1, finished_before=finished)
+    walk(resumed)
+    assert resumed.done_by_kind == {"drive": 1, "eval": 1} and resumed.eta_s() == 0.0
