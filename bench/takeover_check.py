@@ -164,7 +164,8 @@ PAPER_FORM = [
 
 def world_model_run(cfg: TakeoverConfig, tag: str, source: str = "") -> Path:
     """The run whose world model learnt every frame up to the last round (`refine`), and the
-    last round's exploration drives with source "drives" (`refine_with_drives`)."""
+    last round's exploration drives with source "drives" (`refine_with_drives`), without the
+    take-over labels with "drives-crashes-only" (`refine_crashes_only`)."""
     name = "-".join(x for x in (f"takeovers{cfg.rounds}", source, "world-model") if x)
     return Path(cfg.out) / "runs" / tag / name
 
@@ -253,6 +254,11 @@ def parse(argv: list[str] | None) -> TakeoverConfig:
         p.error(
             f"rounds: {cfg.rounds} (StudyConfig.iteration_tracks has placements for {len(tracks)})"
         )
+    needs = [("refine_paper_form", "refine"), ("refine_with_drives", "refine"),
+             ("refine_crashes_only", "refine_with_drives")]  # fmt: skip
+    for option, needed in needs:
+        if getattr(cfg, option) and not getattr(cfg, needed):
+            p.error(f"{option}: true needs {needed}=true")
     if not 0 < cfg.round_seconds < 1e5:
         p.error(f"round_seconds: {cfg.round_seconds} (more than 0)")
     return dataclasses.replace(cfg, study=study_for(p, cfg))

@@ -213,7 +213,10 @@ def test_each_round_is_paired_with_imitation_at_its_frames():
 @pytest.mark.parametrize(
     "setting, says",
     [("rounds=0", "rounds: 0"), ("rounds=4", "rounds: 4"), ("round_seconds=nan", "round_seconds"),
-     ("parallel=0", "parallel: 0"), ("demo_noise=-1", "demo_noise")],
+     ("parallel=0", "parallel: 0"), ("demo_noise=-1", "demo_noise"),
+     ("refine_with_drives=true", "needs refine=true"),
+     ("refine_paper_form=true", "needs refine=true"),
+     ("refine_crashes_only=true", "needs refine_with_drives=true")],
 )  # fmt: skip
 def test_a_bad_setting_is_refused_in_one_line(capsys, setting, says):
     with pytest.raises(SystemExit) as stop:
