@@ -229,8 +229,8 @@ def exploration_drives(cfg: StudyConfig, step: StudyStep, tag: str, k: int, prev
     OUT/data/<kind>-<tag>-iter<k>: the crashes from varied actions a world model learns from."""
     model = str(previous / "policy.onnx")
     drives = Path(cfg.out) / "data" / f"{kind}-{tag}-iter{k}"
-    name = f"drive-{tag}-iter{k}" if kind == "drives" else f"drive-{tag}-{kind}{k}"
-    step(name, py("-m", "training.sim_data", "drives", "--model", model,
+    label = step_label(kind, "drives", k)
+    step(f"drive-{tag}-{label}", py("-m", "training.sim_data", "drives", "--model", model,
          "--out", str(drives), "--tracks", iteration_tracks(cfg, k), "--layouts", cfg.layout,
          "--seconds", str(cfg.drive_seconds), "--jobs", str(cfg.step_jobs()),
          *drive_seeds(k), *explore_args(cfg)), drives / ".done")  # fmt: skip
@@ -244,13 +244,19 @@ def takeover_drives(cfg: StudyConfig, step: StudyStep, tag: str, sigma: float, k
     expert's commands), into OUT/data/<kind>-<tag>-iter<k>: the labels in states the policy
     reached that every real-car drive with an override records."""
     takeovers = Path(cfg.out) / "data" / f"{kind}-{tag}-iter{k}"
-    label = f"iter{k}" if kind == "takeovers" else f"{kind}{k}"  # the step's (and log's) name
+    label = step_label(kind, "takeovers", k)
     model = str(previous / "policy.onnx")
     step(f"takeovers-{tag}-{label}", py("-m", "training.sim_data", "interventions",
          "--model", model, "--out", str(takeovers), "--tracks", iteration_tracks(cfg, k),
          "--layouts", cfg.layout, "--seconds", str(seconds), "--noise", str(sigma),
          "--jobs", str(cfg.step_jobs()), *drive_seeds(k)), takeovers / ".done")  # fmt: skip
     return takeovers
+
+
+def step_label(kind: str, study_kind: str, k: int) -> str:
+    """The end of a drive step's (and log's) name: "iter<k>" for the study's own kind of data,
+    so its steps keep their names; "<kind><k>" for a check's other kinds."""
+    return f"iter{k}" if kind == study_kind else f"{kind}{k}"
 
 
 def iteration_tracks(cfg: StudyConfig, k: int) -> str:
