@@ -120,6 +120,28 @@ def test_next_iteration_starts_from_the_previous_one(iteration1, sim_episodes, t
     assert "iteration 2" in (out / "report.md").read_text()
 
 
+def test_a_fresh_world_model_starts_from_its_own_initialisation_not_inits(
+    iteration1, sim_episodes, tmp_path
+):
+    """world_model_fresh (an ensemble member): the policy still comes from --init, the world
+    model from its seeded initialisation; without it both come from --init."""
+    _, prev = iteration1
+    before = ck.load_checkpoint(prev / "world_model.pt")["world_model"]
+    saved = {}
+    for fresh in (False, True):
+        out = tmp_path / f"fresh-{fresh}"
+        argv = ["--episodes", str(sim_episodes), "--out", str(out), "--init", str(prev)]
+        flag = ["--set", f"world_model_fresh={str(fresh).lower()}", "--seed", "7"]
+        assert main([*argv, *QUICK, *steps(0, 0, 0), *flag]) == 0
+        saved[fresh] = ck.load_checkpoint(out / "world_model.pt")
+    first = ck.load_checkpoint(prev / "policy.pt")["policy"]
+    for ckpt in saved.values():
+        assert all(torch.equal(v, first[k]) for k, v in ckpt["policy"].items())
+    assert all(torch.equal(v, before[k]) for k, v in saved[False]["world_model"].items())
+    differ = [k for k, v in saved[True]["world_model"].items() if not torch.equal(v, before[k])]
+    assert any(k.startswith("gru") for k in differ), "the fresh one is not --init's"
+
+
 def test_reimitate_learns_again_from_the_previous_policy_before_the_world_model(
     iteration1, sim_episodes, tmp_path
 ):

@@ -66,6 +66,11 @@ class IterateConfig:
     # a lifted throttle imagined safest from 73-90 % of the starts) and forwards without it;
     # the take-over labels teach "fast = collision" because the expert brakes after each
     takeovers_as_collisions: bool = False
+    # with --init: the world model starts from its own (seeded) initialisation instead of the
+    # previous run's, the policy still from --init: a member of an ensemble of world models on
+    # the same frames, trained apart (carrt-refine-drift --members asks whether their spread
+    # grows where refinement moved the plan; members that continue one run would agree)
+    world_model_fresh: bool = False
     evidential_lambda: float = 0.01  # λ of the evidential regulariser |y−γ|(2ν+α)
     # mirror half of each batch left↔right, steering negated (training/augment.mirror_batch):
     # steering tied to the place on a one-way track cannot stand in for what the image shows

@@ -197,7 +197,7 @@ def starting_point(cfg: IterateConfig, train_eps: list) -> Start:
         iteration=int(init_ckpt["iteration"]) + 1,
         stages=(["imitation"] if cfg.reimitate else []) + ["world_model", "refine"],
         policy=init_ckpt["policy"],
-        world_model=init_wm["world_model"] if init_wm is not None else None,
+        world_model=None if init_wm is None or cfg.world_model_fresh else init_wm["world_model"],
     )
 
 
