@@ -5,6 +5,9 @@ policy reached worth more per frame than clean demonstrations?
     python -m bench.takeover_check --set rounds=3
     python -m bench.takeover_check --set demo_noise=0.5,1.0
     python -m bench.takeover_check --set refine=true   # + DIRL on the last round, and -unc
+    python -m bench.takeover_check --set rounds=3 --set refine=true --set refine_paper_form=true \
+        --set refine_with_drives=true --set refine_crashes_only=true --set refine_drift=true \
+        --set drift_members=2                          # + where refinement moved the plan
 
 (Here, 2 cores, with the outcome check's demonstrations and IL already made: 23 min for σ 0's
 two rounds, 28 more for a third and IL at rounds 1 and 3, 49 for σ 0.5 and 1.0's two rounds.)
@@ -36,7 +39,11 @@ placements 200-204; the policy is refined in it with the study's gradient and sa
 paper's ablation), on the same frames as the round; `refine_paper_form` adds the paper's
 form (no safeguards) ± unc, `refine_with_drives` a world model that also learns the last
 policy's exploration drives, `refine_crashes_only` one more on those frames without the
-take-over labels.
+take-over labels; `refine_drift` asks of every refined policy how far refinement moved its
+plan and whether the world model's uncertainty rose there (carrt-refine-drift), and
+`drift_members=K` trains K more crash-only world models from their own initialisations whose
+spread (a deep ensemble's uncertainty) the crash-only rows' drift reports too
+(bench/drift_steps.py).
 """
 
 from __future__ import annotations
@@ -59,6 +66,7 @@ from bench.dirl_steps import (
     takeover_drives,
 )
 from bench.dirl_table import plot
+from bench.drift_steps import drift, drift_table, member_runs, read_drift
 from bench.outcome_check import (
     imitation_flags,
     read_sets,
@@ -96,6 +104,13 @@ class TakeoverConfig:
     # (takeovers_as_collisions false: measured, the take-over labels taught the others that
     # speed collides) and the same refinements in it
     refine_crashes_only: bool = False
+    # with refine: carrt-refine-drift on every refined policy (how far refinement moved the plan
+    # and whether the world model's uncertainty rose there; RUN/drift.json, a table)
+    refine_drift: bool = False
+    # with refine_drift and refine_crashes_only: this many more crash-only world models, each
+    # from its own initialisation and seed, whose spread (a deep ensemble's uncertainty) the
+    # crash-only refinements' drift also reports
+    drift_members: int = 0
     eval_tracks: str = StudyConfig.eval_tracks
     parallel: int = 2
     study: StudyConfig = field(default_factory=StudyConfig)
@@ -152,6 +167,7 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
             world = world_model_run(cfg, tag, source)
             metrics = json.loads((world / "metrics.json").read_text())
             row |= {"world_model": str(world), "counterfactual": metrics.get("counterfactual")}
+            row |= {"drift": read_drift(run)} if cfg.refine_drift else {}
         rows.append(row)
 
 
@@ -196,9 +212,16 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
     settings = run_settings(study, seed, every=0)  # the gradient, the study's safeguards
     takeovers = cfg.takeovers_as_collisions and source != "drives-crashes-only"
     labels = f"takeovers_as_collisions={str(takeovers).lower()}"
-    step(f"train-{tag}-{world.name}", iterate_cmd(study, data, world, "--init",
-         str(last), *settings, "--set", f"world_model_steps={study.world_model_steps}",
-         "--set", "refine_steps=0", "--set", labels), world / ".done")  # fmt: skip
+
+    def world_model_cmd(run: Path, extra: list[str]) -> list[str]:
+        return iterate_cmd(study, data, run, "--init", str(last), *settings, "--set",
+                           f"world_model_steps={study.world_model_steps}", "--set",
+                           "refine_steps=0", "--set", labels, *extra)  # fmt: skip
+
+    step(f"train-{tag}-{world.name}", world_model_cmd(world, []), world / ".done")
+    members = []
+    if cfg.drift_members and source == "drives-crashes-only":
+        members = member_runs(step, tag, world, seed, cfg.drift_members, world_model_cmd)
     out, unc = {}, ["--no-uncertainty"]
     for name in forms(cfg):
         flags = [*(PAPER_FORM if name.startswith("paper") else []),
@@ -209,6 +232,8 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
              f"refine_steps={study.refine_steps}", "--set", "counterfactual_starts=0",
              "--set", labels, *flags),
              run / ".done")  # fmt: skip
+        if cfg.refine_drift:
+            drift(step, tag, run, world, members)
         out[f"takeovers{k}+{source + '+' if source else ''}{name}"] = (run, frames)
     return out
 
@@ -255,10 +280,14 @@ def parse(argv: list[str] | None) -> TakeoverConfig:
             f"rounds: {cfg.rounds} (StudyConfig.iteration_tracks has placements for {len(tracks)})"
         )
     needs = [("refine_paper_form", "refine"), ("refine_with_drives", "refine"),
-             ("refine_crashes_only", "refine_with_drives")]  # fmt: skip
+             ("refine_crashes_only", "refine_with_drives"), ("refine_drift", "refine"),
+             ("drift_members", "refine_drift"),
+             ("drift_members", "refine_crashes_only")]  # fmt: skip
     for option, needed in needs:
         if getattr(cfg, option) and not getattr(cfg, needed):
-            p.error(f"{option}: true needs {needed}=true")
+            p.error(f"{option}: {getattr(cfg, option)} needs {needed}=true")
+    if not 0 <= cfg.drift_members <= 16:
+        p.error(f"drift_members: {cfg.drift_members} (0 to 16)")
     if not 0 < cfg.round_seconds < 1e5:
         p.error(f"round_seconds: {cfg.round_seconds} (more than 0)")
     return dataclasses.replace(cfg, study=study_for(p, cfg))
@@ -279,12 +308,19 @@ def main(argv: list[str] | None = None) -> int:
             head = f"train takeovers{r}-{source + '-' if source else ''}"
             kinds |= {head + name: n for name in ["world-model", *forms(cfg)]}
         kinds |= {"drive": n} if cfg.refine_with_drives else {}
+        kinds |= {"drift": refined_rows * n} if cfg.refine_drift else {}
+        if cfg.drift_members:
+            kinds |= {f"train takeovers{r}-drives-crashes-only-member": cfg.drift_members * n}
     rows = run_check(cfg, kinds, chain)
     name = f"takeovers{suffix(cfg)}-noise{'_'.join(f'{x:g}' for x in cfg.demo_noise)}"
     figure = out / f"completion_vs_frames-{name}.png"
     refined = ", the last refined in world models" if cfg.refine else ""
     plot(rows, figure, f"IL and rounds of take-overs{refined}, mean ± std over seeds")
     text = write_results(cfg, rows, started, f"-{name}", pairs(cfg))
+    moves = drift_table(rows)
+    if moves:
+        text += "\n\nWhere refinement moved the plan (carrt-refine-drift):\n\n" + moves
+        (out / f"table-{name}.md").write_text(text + "\n")
     print("\n" + text + f"\n\nwritten: {out}/results-{name}.json, table-{name}.md, {figure}")
     return 0
 

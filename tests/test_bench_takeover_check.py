@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from bench import dirl_steps, outcome_check, takeover_check
+from bench import dirl_steps, drift_steps, outcome_check, takeover_check
 
 
 def _chain(monkeypatch, tmp_path, *sets, sigma=0.0, seed=0):
@@ -194,6 +194,62 @@ def test_refine_crashes_only_adds_a_world_model_without_the_take_over_labels(mon
     ) in takeover_check.pairs(takeover_check.parse(sets))
 
 
+def test_refine_drift_checks_every_refined_policy_and_members_join_the_crash_only_ones(
+    monkeypatch, tmp_path
+):
+    runs = tmp_path / "runs" / "noise0-seed1"
+    for source in ("", "drives-", "drives-crashes-only-"):
+        (runs / f"takeovers1-{source}world-model").mkdir(parents=True)
+        (runs / f"takeovers1-{source}world-model" / "metrics.json").write_text("{}")
+    (runs / "takeovers1-drives-crashes-only-paper").mkdir()
+    (runs / "takeovers1-drives-crashes-only-paper" / "drift.json").write_text('{"moved": 1}')
+    sets = ["--set", "rounds=1", "--set", "refine=true", "--set", "refine_with_drives=true",
+            "--set", "refine_crashes_only=true", "--set", "refine_paper_form=true",
+            "--set", "refine_drift=true", "--set", "drift_members=2"]  # fmt: skip
+    argv, rows = _chain(monkeypatch, tmp_path, *sets, seed=1)
+    world = argv["train-noise0-seed1-takeovers1-drives-crashes-only-world-model"]
+    for m, seed in ((1, "101"), (2, "201")):
+        member = argv[f"train-noise0-seed1-takeovers1-drives-crashes-only-member{m}"]
+        # the crash-only world model's command, its own seed and initialisation
+        assert member[member.index("--out") + 1] == str(
+            runs / f"takeovers1-drives-crashes-only-member{m}"
+        )
+        assert member[-4:] == ["--seed", seed, "--set", "world_model_fresh=true"]
+        assert member[member.index("--init") + 1] == world[world.index("--init") + 1]
+        same = [a for a in member[:-4] if "member" not in a]
+        assert same == [a for a in world if "world-model" not in a]
+    assert not any("member" in name for name in argv if "crashes-only" not in name)
+    drifts = {n: a for n, a in argv.items() if n.startswith("drift-")}
+    assert len(drifts) == 12  # 3 world models × 4 refinements
+    crash = drifts["drift-noise0-seed1-takeovers1-drives-crashes-only-paper-unc"]
+    assert crash[crash.index("--start") + 1] == str(
+        runs / "takeovers1-drives-crashes-only-world-model"
+    )
+    assert crash[crash.index("--members") + 1 :][:2] == [
+        str(runs / f"takeovers1-drives-crashes-only-member{m}") for m in (1, 2)
+    ]
+    assert "--members" not in drifts["drift-noise0-seed1-takeovers1-drives-paper-unc"]
+    by_model = {r["model"]: r for r in rows}
+    assert by_model["takeovers1+refined"]["drift"] is None  # not run here: no file
+    assert by_model["takeovers1+drives-crashes-only+paper"]["drift"] == {"moved": 1}
+
+
+def test_the_drift_table_reports_the_move_and_the_spread_over_seeds():
+    def one(steer: float, spread: float) -> dict:
+        terms = {"u_total": 10.0, "speed_spread": 0.4, "p_collision_spread": 1.0}
+        return {"moved": {"steering_abs": steer, "throttle_abs": 0.05},
+                "change": {"speed": 1.0, "p_collision": -0.1, "u_total": 0.0},
+                "start": terms, "refined": {**terms, "speed_spread": spread}}  # fmt: skip
+
+    rows = [{"model": "takeovers3+paper", "drift": one(0.3, 0.5)},
+            {"model": "takeovers3+paper", "drift": one(0.5, 0.7)},
+            {"model": "takeovers3", "drift": None}]  # fmt: skip
+    table = drift_steps.drift_table(rows).splitlines()
+    assert len(table) == 3 and table[2].startswith("| takeovers3+paper | 2 | +0.400 ± 0.100 |")
+    assert "| 0.40 → 0.60 | 1.00 → 1.00 |" in table[2]
+    assert drift_steps.drift_table(rows[2:]) == ""
+
+
 def test_each_round_is_paired_with_imitation_at_its_frames():
     cfg = takeover_check.parse([])
     assert takeover_check.pairs(cfg) == [
@@ -216,7 +272,10 @@ def test_each_round_is_paired_with_imitation_at_its_frames():
      ("parallel=0", "parallel: 0"), ("demo_noise=-1", "demo_noise"),
      ("refine_with_drives=true", "needs refine=true"),
      ("refine_paper_form=true", "needs refine=true"),
-     ("refine_crashes_only=true", "needs refine_with_drives=true")],
+     ("refine_crashes_only=true", "needs refine_with_drives=true"),
+     ("refine_drift=true", "needs refine=true"),
+     ("drift_members=2", "needs refine_drift=true"),
+     ("drift_members=-1", "drift_members")],
 )  # fmt: skip
 def test_a_bad_setting_is_refused_in_one_line(capsys, setting, says):
     with pytest.raises(SystemExit) as stop:
