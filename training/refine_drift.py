@@ -98,6 +98,42 @@ def drift(world_model, start_policy, refined_policy, image, speed, clip: float, 
     return result
 
 
+def policy_before_refinement(cfg, out: Path):
+    """The policy this run's refinement started from, as a loaded PolicyNet, or None: the last
+    checkpoint of an earlier stage in this run (world model, else imitation: their policy is
+    the one refinement took), else --init's policy.pt. Read from files, so a run resumed in
+    the middle of refinement still compares against where refinement began."""
+    for stage in ("world_model", "imitation"):
+        path = out / "checkpoints" / f"{stage}.pt"
+        if path.is_file():
+            return ck.load_policy(path)[0]
+    if cfg.init and (Path(cfg.init) / "policy.pt").is_file():
+        return ck.load_policy(Path(cfg.init) / "policy.pt")[0]
+    return None
+
+
+def report_drift(cfg, out: Path, policy, world_model, episodes, device, limit: int = 256):
+    """For report.md: `drift` of this run's refinement on up to `limit` start frames spread
+    over `episodes` (the held-out ones); None when it refined nothing or its start is unknown.
+    Recorded frames only, no simulator: it works on a car's episodes too."""
+    from training.data import WindowDataset, take
+    from training.evaluate import spread_indices
+
+    if cfg.refine_steps <= 0 or not episodes:
+        return None
+    start = policy_before_refinement(cfg, out)
+    if start is None:
+        return None
+    profile = cfg.profile_obj
+    windows = WindowDataset(episodes, profile.horizon, predict_size=profile.predict_size)
+    if len(windows) == 0:
+        return None
+    batch = take(windows, [int(i) for i in spread_indices(len(windows), limit)])
+    models = [m.to(device) for m in (world_model, start, policy)]
+    return drift(*models, batch["image"].to(device), batch["speed"].to(device),
+                 cfg.uncertainty_clip, cfg.collision_prior_correction)  # fmt: skip
+
+
 def run_paths(run: Path) -> tuple[Path, Path]:
     policy, world_model = run / "policy.pt", run / "world_model.pt"
     for path in (policy, world_model):

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from training.evaluate import evaluate
 from training.figures import loss_curves, reveries, uncertainty_vs_error
+from training.refine_drift import report_drift
 
 
 def _fmt(x, digits: int = 4) -> str:
@@ -84,6 +85,7 @@ def finish_run(
             out, None, cfg.counterfactual_layout, cfg.counterfactual_tracks,
             cfg.counterfactual_starts,
         )  # fmt: skip
+    refinement = report_drift(cfg, out, policy, world_model, eval_eps, device)
     stages = {
         name: {
             "steps": r.steps,
@@ -111,6 +113,7 @@ def finish_run(
         "device": str(device), "data": data, "stages": stages,
         "metrics": metrics, "figures": figures, "export": export_info,
         "normalisation": norm.to_dict(), "counterfactual": counterfactual,
+        "refine_drift": refinement,
     }  # fmt: skip
     (out / "metrics.json").write_text(json.dumps(_finite(record), indent=2, default=str) + "\n")
     (out / "report.md").write_text(render(cfg, record, export_lines))
@@ -199,6 +202,20 @@ def render(cfg, r: dict, export_lines: list[str]) -> str:
             describe(c),
             "",
             *by_sequence_table(c),
+            "",
+        ]
+    if r.get("refine_drift"):
+        from training.refine_drift import describe as describe_drift
+
+        md += [
+            "## Where refinement moved the plan (held-out frames)",
+            "",
+            "The plan of the policy refinement started from against the refined one, and what "
+            "the world model imagines of each (training/refine_drift.py). A large move the "
+            "uncertainty does not rise for is one the uncertainty term could not hold back: "
+            "judge it by driving.",
+            "",
+            describe_drift(r["refine_drift"]),
             "",
         ]
     if r["figures"]:
