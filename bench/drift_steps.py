@@ -63,8 +63,8 @@ def drift_table(rows: list[dict]) -> str:
     if not models:
         return ""
 
-    def cell(values: list[float], digits: int = 2) -> str:
-        return f"{np.mean(values):+.{digits}f} ± {np.std(values):.{digits}f}"
+    def cell(values: list[float], digits: int = 2, sign: str = "+") -> str:
+        return f"{np.mean(values):{sign}.{digits}f} ± {np.std(values):.{digits}f}"
 
     lines = ["| refined model | seeds | \\|Δ steering\\| | \\|Δ throttle\\| | Δ Σ imagined speed | "
              "Δ Σ p(collision) | Δ Σ uncertainty (of) | members' spread of Σ speed, start → "
@@ -82,7 +82,7 @@ def drift_table(rows: list[dict]) -> str:
                 for k in ("speed_spread", "p_collision_spread")
             ]
         lines.append(
-            f"| {model} | {len(drifts)} | {cell(moved[0], 3)} | {cell(moved[1], 3)} | "
+            f"| {model} | {len(drifts)} | {cell(moved[0], 3, '')} | {cell(moved[1], 3, '')} | "
             f"{cell(change[0])} | {cell(change[1], 3)} | {cell(change[2])} ({of:.1f}) | "
             f"{spread[0]} | {spread[1]} |"
         )

@@ -245,7 +245,7 @@ def test_the_drift_table_reports_the_move_and_the_spread_over_seeds():
             {"model": "takeovers3+paper", "drift": one(0.5, 0.7)},
             {"model": "takeovers3", "drift": None}]  # fmt: skip
     table = drift_steps.drift_table(rows).splitlines()
-    assert len(table) == 3 and table[2].startswith("| takeovers3+paper | 2 | +0.400 ± 0.100 |")
+    assert len(table) == 3 and table[2].startswith("| takeovers3+paper | 2 | 0.400 ± 0.100 |")
     assert "| 0.40 → 0.60 | 1.00 → 1.00 |" in table[2]
     assert drift_steps.drift_table(rows[2:]) == ""
 
