@@ -75,7 +75,7 @@ def test_iteration_writes_policy_report_figures_and_onnx(iteration1, sim_episode
 
     report = (out / "report.md").read_text()
     for needle in ("speed MAE", "constant speed", "collision AUROC", "imitation L1",
-                   "training data digest", "held out"):  # fmt: skip
+                   "training data digest", "held out", "to steering ±0.6"):  # fmt: skip
         assert needle in report, needle
     for png in ("loss_curves.png", "uncertainty_vs_error.png", "reveries.png"):
         assert (out / "figures" / png).stat().st_size > 10_000
@@ -85,6 +85,7 @@ def test_iteration_writes_policy_report_figures_and_onnx(iteration1, sim_episode
     assert m["held_out"] and m["windows"] > 0
     assert np.isfinite(m["speed_mae_mps"]) and np.isfinite(m["baseline_speed_mae_mps"])
     assert np.isfinite(m["imitation_l1"])
+    assert m["response_steering_image"] >= 0 and m["response_throttle_speed"] >= 0
     if m["collision_steps"] > 0:  # which episodes are held out depends on their names
         assert 0.0 <= m["collision_auroc"] <= 1.0
     else:

@@ -25,7 +25,7 @@ from training.data import (  # noqa: E402
     load_episodes,
     take,
 )
-from training.evaluate import auroc, spearman  # noqa: E402
+from training.evaluate import action_response, auroc, spearman  # noqa: E402
 from training.imitation import imitation_loss, train_imitation  # noqa: E402
 from training.models import PolicyNet, WorldModel  # noqa: E402
 from training.refine import (  # noqa: E402
@@ -469,6 +469,26 @@ def test_checkpoint_round_trip_and_refusals(data, tmp_path):
         ck.load_checkpoint(tmp_path / "junk.pt")
     with pytest.raises(ck.CheckpointError, match="holds no world model"):
         ck.load_world_model(path)
+
+
+def test_the_action_response_is_zero_for_a_world_model_blind_to_the_actions(
+    data, trained_world_model
+):
+    """With the action input cut (its layer's weights and bias zero) every shifted sequence is
+    imagined alike: 0 on each response; the trained one responds to both channels."""
+    _, _, windows, _ = data
+    world_model, _ = trained_world_model
+    seen = action_response(world_model, windows, "cpu", limit=32)
+    assert seen["response_steering_image"] > 0 and seen["response_throttle_speed"] > 0
+    assert seen["response_image_error"] > 0
+    blind = copy.deepcopy(world_model)
+    with torch.no_grad():
+        for p in blind.action_net.parameters():
+            p.zero_()
+    cut = action_response(blind, windows, "cpu", limit=32)
+    for key in ("response_steering_risk", "response_steering_image", "response_throttle_speed"):
+        assert cut[key] == pytest.approx(0.0, abs=1e-6), key
+    assert cut["response_image_error"] > 0  # it still predicts, just not from the actions
 
 
 def test_auroc_matches_the_pairwise_definition():

@@ -169,6 +169,13 @@ def render(cfg, r: dict, export_lines: list[str]) -> str:
         f"{_fmt(m.get('imitation_l1'))} | — |",
         f"| Spearman(u_speed, speed error) | {_fmt(m.get('spearman_u_speed_vs_error'), 3)} | 0 |",
         f"| Spearman(u_image, image error) | {_fmt(m.get('spearman_u_image_vs_error'), 3)} | 0 |",
+        f"| response of max p̂(collision) to steering ±0.6 | "
+        f"{_fmt(m.get('response_steering_risk'), 3)} | 0: blind to steering |",
+        f"| response of the predicted images to steering ±0.6 (their error: "
+        f"{_fmt(m.get('response_image_error'), 3)}) | {_fmt(m.get('response_steering_image'), 3)} "
+        f"| 0: blind to steering |",
+        f"| response of the speed to full throttle against braking (m/s) | "
+        f"{_fmt(m.get('response_throttle_speed'), 3)} | 0: blind to throttle |",
         "",
     ]
     if m.get("speed_mae_per_step"):
