@@ -35,35 +35,33 @@ sample share).
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import functools
 import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
-from bench.dirl_sim import StudyConfig, usable_cores
+from bench.check_steps import (
+    imitation_flags,
+    read_sets,
+    run_check,
+    study_for,
+    suffix,
+    write_results,
+)
+from bench.check_steps import report as paired_report
+from bench.dirl_sim import StudyConfig
 from bench.dirl_steps import (
-    ROOT,
     evaluate,
-    every_noise_demonstrations,
     frames_in,
     il_equal_data,
     iterate_cmd,
     iteration_drives,
     reimitate_flags,
 )
-from bench.dirl_table import cell
-from bench.study_steps import StudyStep, finished_steps, run_chains
-from carrt.errors import UserError
-from carrt.settings import apply_sets
+from bench.study_steps import StudyStep
 
 ARMS = {"outcomes": "true", "uniform": "false"}  # arm → outcome_advantage
-# the driving columns of the first table and their formats
-METRICS = (("completion_ratio", ".2f"), ("collisions_per_min", ".1f"), ("average_speed", ".2f"))
 
 
 @dataclass
@@ -149,36 +147,9 @@ def chain(cfg: CheckConfig, step: StudyStep, sigma: float, seed: int, rows: list
                      if diagnostics.is_file() else None})  # fmt: skip
 
 
-def imitation_flags(study: StudyConfig, seed: int) -> list[str]:
-    """iterate.py flags of imitation alone (IL, IL at equal frames): no world model, no
-    refinement."""
-    return ["--seed", str(seed), "--set", f"imitation_steps={study.imitation_steps}",
-            "--set", "world_model_steps=0", "--set", "refine_steps=0"]  # fmt: skip
-
-
 def outcomes_model(k: int) -> str:
     """The outcomes arm's name at iteration k: "outcomes", "outcomes2", …"""
     return "outcomes" if k == 1 else f"outcomes{k}"
-
-
-def suffix(cfg: CheckConfig) -> str:
-    """Nothing for the test placements; "-<tracks>" for others (their results kept apart)."""
-    return "" if cfg.eval_tracks == StudyConfig.eval_tracks else f"-{cfg.eval_tracks}"
-
-
-def paired(rows: list[dict], model: str, base: str, key: str) -> list[tuple[int, float, float]]:
-    """(seed, mean difference, its paired standard error) over the placements both drove."""
-    out = []
-    for r in (r for r in rows if r["model"] == model):
-        b = next((x for x in rows if x["model"] == base and x["seed"] == r["seed"]), None)
-        if b is None:
-            continue
-        mine = {run["track"]: run[key] for run in r["runs"]}
-        theirs = {run["track"]: run[key] for run in b["runs"]}
-        d = np.array([mine[t] - theirs[t] for t in mine if t in theirs], dtype=float)
-        se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
-        out.append((r["seed"], float(d.mean()), se))
-    return out
 
 
 def outcome_pairs(rows: list[dict]) -> list[tuple[str, str]]:
@@ -193,38 +164,8 @@ def outcome_pairs(rows: list[dict]) -> list[tuple[str, str]]:
 
 
 def report(rows: list[dict], pairs: list[tuple[str, str]] | None = None) -> str:
-    """Each model's driving (mean ± std over placements and seeds) and the paired differences
-    `pairs` (default: outcome_pairs), seed by seed."""
-    lines = ["| model | seeds | frames | completion | collisions / min | avg m/s |",
-             "|---|---|---|---|---|---|"]  # fmt: skip
-    for model in dict.fromkeys(r["model"] for r in rows):
-        mine = [r for r in rows if r["model"] == model]
-        runs = [run for r in mine for run in r["runs"]]
-        frames = [r["frames"] for r in mine if "frames" in r]
-        shown = f"{np.mean(frames):,.0f}" if frames else "–"
-        completion, collisions, speed = (
-            cell([run[key] for run in runs], fmt) for key, fmt in METRICS
-        )
-        lines.append(f"| {model} | {len(mine)} | {shown} | {completion} | {collisions} | {speed} |")
-    lines += [
-        "",
-        "| model | against | Δ completion, mean ± std over seeds | per seed (± paired SE) "
-        "| Δ collisions / min | per seed |",
-        "|---|---|---|---|---|---|",
-    ]
-    for model, base in outcome_pairs(rows) if pairs is None else pairs:
-        comp = paired(rows, model, base, "completion_ratio")
-        coll = paired(rows, model, base, "collisions_per_min")
-        if not comp:
-            continue
-        each = ", ".join(f"{d:+.2f} ± {se:.2f}" for _, d, se in comp)
-        each_c = ", ".join(f"{d:+.1f} ± {se:.1f}" for _, d, se in coll)
-        mean_comp, mean_coll = (
-            cell([d for _, d, _ in comp], "+.3f"),
-            cell([d for _, d, _ in coll], "+.2f"),
-        )
-        lines.append(f"| {model} | {base} | {mean_comp} | {each} | {mean_coll} | {each_c} |")
-    return "\n".join(lines)
+    """check_steps.report with the outcome check's pairs (outcome_pairs) by default."""
+    return paired_report(rows, outcome_pairs(rows) if pairs is None else pairs)
 
 
 def parse(argv: list[str] | None) -> CheckConfig:
@@ -232,65 +173,6 @@ def parse(argv: list[str] | None) -> CheckConfig:
     if cfg.outcome_iterations < 1:
         p.error(f"outcome_iterations: {cfg.outcome_iterations} (1 or more)")
     return dataclasses.replace(cfg, study=study_for(p, cfg))
-
-
-def read_sets(argv: list[str] | None, cfg, module: str, doc: str, name: str):
-    """A check's command line: `--set FIELD=VALUE` on its config dataclass `cfg` (named `name`
-    in `module`). Returns the parser (for one-line errors, exit code 2) and the config."""
-    p = argparse.ArgumentParser(prog=f"python -m {module}", description=doc.split("\n")[0])
-    where = f"{name} in {module.replace('.', '/')}.py"
-    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                   help=f"a {where} field; tuples comma-separated")  # fmt: skip
-    try:
-        return p, apply_sets(cfg, p.parse_args(argv).set, where)
-    except UserError as exc:
-        p.error(str(exc))
-
-
-def run_check(cfg, kinds: dict[str, int], chain_fn, extra: bool = True) -> list[dict]:
-    """A check's steps: each σ's demonstrations (and the second pool with `extra`), then
-    `chain_fn(cfg, step, σ, seed, rows)` for every σ and seed side by side. The steps an earlier
-    invocation finished are counted first (the chains walked with nothing run, as the study
-    does), so the ETA leaves them out instead of guessing them at a typical time."""
-
-    def walk(step: StudyStep) -> list[dict]:
-        every_noise_demonstrations(cfg.study, step, extra)  # NotRun only while counting
-        return run_chains([functools.partial(chain_fn, cfg, step, sigma, s)
-                           for sigma in cfg.demo_noise for s in cfg.seeds])[0]  # fmt: skip
-
-    finished = finished_steps(Path(cfg.out), kinds, walk)
-    return walk(StudyStep(Path(cfg.out), kinds, parallel=cfg.parallel, cwd=ROOT,
-                          finished_before=finished))  # fmt: skip
-
-
-def write_results(cfg, rows: list[dict], started: float, name: str,
-                  pairs: list[tuple[str, str]] | None = None) -> str:  # fmt: skip
-    """OUT/results<name>.json (config, rows, wall time) and OUT/table<name>.md (one table per
-    demonstration noise, `report` with `pairs`); returns the tables' text."""
-    text = "\n\n".join(
-        f"Demonstration noise σ {sigma:g}:\n\n"
-        + report([r for r in rows if r["demo_noise"] == sigma], pairs)
-        for sigma in cfg.demo_noise
-    )
-    results = {"config": dataclasses.asdict(cfg), "rows": rows,
-               "wall_s": time.monotonic() - started}  # fmt: skip
-    out = Path(cfg.out)
-    (out / f"results{name}.json").write_text(json.dumps(results, indent=1) + "\n")
-    (out / f"table{name}.md").write_text(text + "\n")
-    return text
-
-
-def study_for(p: argparse.ArgumentParser, cfg) -> StudyConfig:
-    """The study's settings with a check's out, seeds, σs, placements and parallelism (every
-    core shared between its steps); a bad one ends in one line through `p`."""
-    if cfg.parallel < 1:
-        p.error(f"parallel: {cfg.parallel} (1 or more)")
-    if any(not 0 <= s < 10 for s in cfg.demo_noise) or not cfg.demo_noise:
-        p.error(f"demo_noise: {cfg.demo_noise} (one or more σ in [0, 10))")
-    cores = usable_cores()
-    return dataclasses.replace(cfg.study, out=cfg.out, seeds=cfg.seeds,
-                               demo_noise=cfg.demo_noise, parallel=cfg.parallel,
-                               threads=cores, jobs=cores, eval_tracks=cfg.eval_tracks)  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -305,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
              "train imitated": n, "train outcomes": k * n, "train uniform": control,
              "eval": (2 + k + cfg.il_equal) * n + control}  # fmt: skip
     rows = run_check(cfg, kinds, chain, extra=cfg.il_equal)
-    text = write_results(cfg, rows, started, suffix(cfg))
+    text = write_results(cfg, rows, started, suffix(cfg), outcome_pairs)
     print("\n" + text + f"\n\nwritten: {out}/results{suffix(cfg)}.json, table{suffix(cfg)}.md")
     return 0
 

@@ -54,6 +54,14 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bench.check_steps import (
+    imitation_flags,
+    read_sets,
+    run_check,
+    study_for,
+    suffix,
+    write_results,
+)
 from bench.dirl_sim import StudyConfig
 from bench.dirl_steps import (
     evaluate,
@@ -67,14 +75,6 @@ from bench.dirl_steps import (
 )
 from bench.dirl_table import plot
 from bench.drift_steps import drift, drift_table, member_runs, read_drift
-from bench.outcome_check import (
-    imitation_flags,
-    read_sets,
-    run_check,
-    study_for,
-    suffix,
-    write_results,
-)
 from bench.study_steps import StudyStep
 
 
@@ -316,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
     figure = out / f"completion_vs_frames-{name}.png"
     refined = ", the last refined in world models" if cfg.refine else ""
     plot(rows, figure, f"IL and rounds of take-overs{refined}, mean ± std over seeds")
-    text = write_results(cfg, rows, started, f"-{name}", pairs(cfg))
+    text = write_results(cfg, rows, started, f"-{name}", lambda _rows: pairs(cfg))
     moves = drift_table(rows)
     if moves:
         text += "\n\nWhere refinement moved the plan (carrt-refine-drift):\n\n" + moves

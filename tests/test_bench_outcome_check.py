@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from bench import dirl_steps, outcome_check
+from bench import check_steps, dirl_steps, outcome_check
 
 
 def _row(model, seed, completions, collisions=None):
@@ -39,7 +39,7 @@ def test_differences_are_paired_by_placement_within_each_seed():
         _row("imitated", 1, [0.9, 0.9, 0.9]),
         _row("outcomes", 1, [0.9, 0.6, 0.9]),
     ]
-    got = outcome_check.paired(rows, "outcomes", "imitated", "completion_ratio")
+    got = check_steps.paired(rows, "outcomes", "imitated", "completion_ratio")
     assert [s for s, _, _ in got] == [0, 1]
     assert got[0][1] == pytest.approx(0.2 / 3) and got[1][1] == pytest.approx(-0.1)
     # seed 0's differences 0.2, 0, 0: sample std 0.2/√3, over √3 placements

@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from bench import dirl_steps, drift_steps, outcome_check, takeover_check
+from bench import check_steps, dirl_steps, drift_steps, outcome_check, takeover_check
 
 
 def _chain(monkeypatch, tmp_path, *sets, sigma=0.0, seed=0):
@@ -50,8 +50,8 @@ def test_each_round_is_take_overs_by_the_previous_policy_and_imitation_again(mon
     assert "refine_steps=0" in train
     # IL: the outcome check's own command (so its run is reused); IL at each round's frames
     study = takeover_check.parse(["--set", f"out={tmp_path}"]).study
-    assert argv["train-noise1-seed2-il"][-len(outcome_check.imitation_flags(study, 2)) :] == (
-        outcome_check.imitation_flags(study, 2)
+    assert argv["train-noise1-seed2-il"][-len(check_steps.imitation_flags(study, 2)) :] == (
+        check_steps.imitation_flags(study, 2)
     )
     frames = {r["model"]: r["frames"] for r in rows}
     assert frames == {"IL": 1000, "takeovers1": 2000, "IL-equal-takeovers1": 2000,
