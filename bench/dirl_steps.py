@@ -223,16 +223,16 @@ def iteration_drives(
 
 
 def exploration_drives(cfg: StudyConfig, step: StudyStep, tag: str, k: int, previous: Path,
-                       kind: str = "drives") -> Path:  # fmt: skip
-    """The previous policy drives iteration k's placements alone, drive_seconds each, with
-    exploration noise (every crash labelled and followed by the auto-reset), into
+                       kind: str = "drives", tracks: str | None = None) -> Path:  # fmt: skip
+    """The previous policy drives iteration k's placements (or `tracks`) alone, drive_seconds
+    each, with exploration noise (every crash labelled and followed by the auto-reset), into
     OUT/data/<kind>-<tag>-iter<k>: the crashes from varied actions a world model learns from."""
     model = str(previous / "policy.onnx")
     drives = Path(cfg.out) / "data" / f"{kind}-{tag}-iter{k}"
     label = step_label(kind, "drives", k)
     step(f"drive-{tag}-{label}", py("-m", "training.sim_data", "drives", "--model", model,
-         "--out", str(drives), "--tracks", iteration_tracks(cfg, k), "--layouts", cfg.layout,
-         "--seconds", str(cfg.drive_seconds), "--jobs", str(cfg.step_jobs()),
+         "--out", str(drives), "--tracks", tracks or iteration_tracks(cfg, k), "--layouts",
+         cfg.layout, "--seconds", str(cfg.drive_seconds), "--jobs", str(cfg.step_jobs()),
          *drive_seeds(k), *explore_args(cfg)), drives / ".done")  # fmt: skip
     return drives
 

@@ -107,6 +107,11 @@ class TakeoverConfig:
     # with refine: carrt-refine-drift on every refined policy (how far refinement moved the plan
     # and whether the world model's uncertainty rose there; RUN/drift.json, a table)
     refine_drift: bool = False
+    # with refine_crashes_only: placements the last round's policy also drives with exploration
+    # noise (drive_seconds each) for a fourth world model, crash labels only, on every frame the
+    # third learnt plus these ("more-drives-crashes-only"): the issue's "hundreds of crashes
+    # from varied actions"; a round's own drives hold ~100. "" = none
+    more_drive_tracks: str = ""
     # with refine_drift and refine_crashes_only: this many more crash-only world models, each
     # from its own initialisation and seed, whose spread (a deep ensemble's uncertainty) the
     # crash-only refinements' drift also reports
@@ -198,6 +203,17 @@ def refined(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data: lis
         more = [*data, drives]
         more_frames = frames + frames_in([drives])
         for source in sources(cfg)[1:]:
+            if source == "more-drives-crashes-only":
+                extra = exploration_drives(
+                    cfg.study,
+                    step,
+                    tag,
+                    cfg.rounds,
+                    last,
+                    kind="more-drives",
+                    tracks=cfg.more_drive_tracks,
+                )
+                more, more_frames = [*more, extra], more_frames + frames_in([extra])
             out |= refinements(cfg, step, tag, seed, more, last, more_frames, source)
     return out
 
@@ -210,7 +226,7 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
     runs, world = Path(cfg.out) / "runs" / tag, world_model_run(cfg, tag, source)
     prefix = f"takeovers{k}-{source}-" if source else f"takeovers{k}-"
     settings = run_settings(study, seed, every=0)  # the gradient, the study's safeguards
-    takeovers = cfg.takeovers_as_collisions and source != "drives-crashes-only"
+    takeovers = cfg.takeovers_as_collisions and not source.endswith("crashes-only")
     labels = f"takeovers_as_collisions={str(takeovers).lower()}"
 
     def world_model_cmd(run: Path, extra: list[str]) -> list[str]:
@@ -246,8 +262,10 @@ def forms(cfg: TakeoverConfig) -> list[str]:
 
 def sources(cfg: TakeoverConfig) -> list[str]:
     """The world models refinement runs in: "" (the rounds' frames), "drives" (+ drives),
-    "drives-crashes-only" (+ drives, take-overs not labelled collisions)."""
+    "drives-crashes-only" (+ drives, take-overs not labelled collisions),
+    "more-drives-crashes-only" (+ drives on `more_drive_tracks` too, crashes alone)."""
     more = ["drives", *(["drives-crashes-only"] if cfg.refine_crashes_only else [])]
+    more += ["more-drives-crashes-only"] if cfg.more_drive_tracks else []
     return ["", *more] if cfg.refine_with_drives else [""]
 
 
@@ -286,6 +304,8 @@ def parse(argv: list[str] | None) -> TakeoverConfig:
     for option, needed in needs:
         if getattr(cfg, option) and not getattr(cfg, needed):
             p.error(f"{option}: {getattr(cfg, option)} needs {needed}=true")
+    if cfg.more_drive_tracks and not cfg.refine_crashes_only:
+        p.error(f"more_drive_tracks: {cfg.more_drive_tracks} needs refine_crashes_only=true")
     if not 0 <= cfg.drift_members <= 16:
         p.error(f"drift_members: {cfg.drift_members} (0 to 16)")
     if not 0 < cfg.round_seconds < 1e5:
@@ -307,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
         for source in sources(cfg):
             head = f"train takeovers{r}-{source + '-' if source else ''}"
             kinds |= {head + name: n for name in ["world-model", *forms(cfg)]}
-        kinds |= {"drive": n} if cfg.refine_with_drives else {}
+        kinds |= {"drive": n * (1 + bool(cfg.more_drive_tracks))} if cfg.refine_with_drives else {}
         kinds |= {"drift": refined_rows * n} if cfg.refine_drift else {}
         if cfg.drift_members:
             kinds |= {f"train takeovers{r}-drives-crashes-only-member": cfg.drift_members * n}

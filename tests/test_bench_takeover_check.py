@@ -234,6 +234,37 @@ def test_refine_drift_checks_every_refined_policy_and_members_join_the_crash_onl
     assert by_model["takeovers1+drives-crashes-only+paper"]["drift"] == {"moved": 1}
 
 
+def test_more_drive_tracks_adds_a_crash_only_world_model_on_more_exploration_drives(
+    monkeypatch, tmp_path
+):
+    runs = tmp_path / "runs" / "noise0-seed0"
+    for source in ("", "drives-", "drives-crashes-only-", "more-drives-crashes-only-"):
+        (runs / f"takeovers1-{source}world-model").mkdir(parents=True)
+        (runs / f"takeovers1-{source}world-model" / "metrics.json").write_text("{}")
+    sets = ["--set", "rounds=1", "--set", "refine=true", "--set", "refine_with_drives=true",
+            "--set", "refine_crashes_only=true",
+            "--set", "more_drive_tracks=1100-1144"]  # fmt: skip
+    argv, rows = _chain(monkeypatch, tmp_path, *sets)
+    drive = argv["drive-noise0-seed0-more-drives1"]
+    assert drive[drive.index("--tracks") + 1] == "1100-1144"
+    assert drive[drive.index("--model") + 1] == str(runs / "takeovers1" / "policy.onnx")
+    assert "--explore" in drive
+    world = argv["train-noise0-seed0-takeovers1-more-drives-crashes-only-world-model"]
+    crashes = argv["train-noise0-seed0-takeovers1-drives-crashes-only-world-model"]
+    episodes = world[world.index("--episodes") + 1 : world.index("--out")]
+    assert episodes == [
+        *crashes[crashes.index("--episodes") + 1 : crashes.index("--out")],
+        str(tmp_path / "data" / "more-drives-noise0-seed0-iter1"),
+    ]
+    assert "takeovers_as_collisions=false" in world
+    by_model = {r["model"]: r for r in rows}
+    assert by_model["takeovers1+more-drives-crashes-only+refined"]["frames"] == (
+        by_model["takeovers1+drives-crashes-only+refined"]["frames"] + 1000
+    )
+    with pytest.raises(SystemExit):
+        takeover_check.parse(["--set", "refine=true", "--set", "more_drive_tracks=1100-1144"])
+
+
 def test_the_drift_table_reports_the_move_and_the_spread_over_seeds():
     def one(steer: float, spread: float) -> dict:
         terms = {"u_total": 10.0, "speed_spread": 0.4, "p_collision_spread": 1.0}
