@@ -108,9 +108,10 @@ class TakeoverConfig:
     # and whether the world model's uncertainty rose there; RUN/drift.json, a table)
     refine_drift: bool = False
     # with refine_crashes_only: placements the last round's policy also drives with exploration
-    # noise (drive_seconds each) for a fourth world model, crash labels only, on every frame the
-    # third learnt plus these ("more-drives-crashes-only"): the issue's "hundreds of crashes
-    # from varied actions"; a round's own drives hold ~100. "" = none
+    # noise (drive_seconds each) for two more world models, crash labels only: on every frame
+    # the third learnt plus these ("more-drives-crashes-only"), and on the exploration drives
+    # alone ("drives-only"; refinement still on every frame): the issue's "hundreds of crashes
+    # from varied actions" (a round's own drives hold ~100). "" = none
     more_drive_tracks: str = ""
     # with refine_drift and refine_crashes_only: this many more crash-only world models, each
     # from its own initialisation and seed, whose spread (a deep ensemble's uncertainty) the
@@ -198,40 +199,40 @@ def refined(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data: lis
     `refine_with_drives`, the same in a world model that also learnt the last policy's
     exploration drives."""
     out = refinements(cfg, step, tag, seed, data, last, frames, "")
-    if cfg.refine_with_drives:
-        drives = exploration_drives(cfg.study, step, tag, cfg.rounds, last, kind="round-drives")
-        more = [*data, drives]
-        more_frames = frames + frames_in([drives])
-        for source in sources(cfg)[1:]:
-            if source == "more-drives-crashes-only":
-                extra = exploration_drives(
-                    cfg.study,
-                    step,
-                    tag,
-                    cfg.rounds,
-                    last,
-                    kind="more-drives",
-                    tracks=cfg.more_drive_tracks,
-                )
-                more, more_frames = [*more, extra], more_frames + frames_in([extra])
-            out |= refinements(cfg, step, tag, seed, more, last, more_frames, source)
+    if not cfg.refine_with_drives:
+        return out
+    drives = exploration_drives(cfg.study, step, tag, cfg.rounds, last, kind="round-drives")
+    more, more_frames = [*data, drives], frames + frames_in([drives])
+    for source in ("drives", "drives-crashes-only")[: 1 + cfg.refine_crashes_only]:
+        out |= refinements(cfg, step, tag, seed, more, last, more_frames, source)
+    if cfg.more_drive_tracks:
+        extra = exploration_drives(cfg.study, step, tag, cfg.rounds, last, kind="more-drives",
+                                   tracks=cfg.more_drive_tracks)  # fmt: skip
+        most, most_frames = [*more, extra], more_frames + frames_in([extra])
+        out |= refinements(cfg, step, tag, seed, most, last, most_frames,
+                           "more-drives-crashes-only")  # fmt: skip
+        # the world model on the exploration drives alone; refinement still on every frame
+        out |= refinements(cfg, step, tag, seed, most, last, most_frames, "drives-only",
+                           world_data=[drives, extra])  # fmt: skip
     return out
 
 
 def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data: list[Path],
-                last: Path, frames: int, source: str) -> dict[str, tuple[Path, int]]:  # fmt: skip
-    """One world model on `data` from the last round's policy (its counterfactual check in its
-    run's metrics.json), then each refinement variant from it."""
+                last: Path, frames: int, source: str,
+                world_data: list[Path] | None = None) -> dict[str, tuple[Path, int]]:  # fmt: skip
+    """One world model on `world_data` (default `data`) from the last round's policy (its
+    counterfactual check in its run's metrics.json), then each refinement variant from it, on
+    `data`."""
     study, k = cfg.study, cfg.rounds
     runs, world = Path(cfg.out) / "runs" / tag, world_model_run(cfg, tag, source)
     prefix = f"takeovers{k}-{source}-" if source else f"takeovers{k}-"
     settings = run_settings(study, seed, every=0)  # the gradient, the study's safeguards
-    takeovers = cfg.takeovers_as_collisions and not source.endswith("crashes-only")
+    takeovers = cfg.takeovers_as_collisions and source in ("", "drives")
     labels = f"takeovers_as_collisions={str(takeovers).lower()}"
 
     def world_model_cmd(run: Path, extra: list[str]) -> list[str]:
-        return iterate_cmd(study, data, run, "--init", str(last), *settings, "--set",
-                           f"world_model_steps={study.world_model_steps}", "--set",
+        return iterate_cmd(study, world_data or data, run, "--init", str(last), *settings,
+                           "--set", f"world_model_steps={study.world_model_steps}", "--set",
                            "refine_steps=0", "--set", labels, *extra)  # fmt: skip
 
     step(f"train-{tag}-{world.name}", world_model_cmd(world, []), world / ".done")
@@ -263,9 +264,12 @@ def forms(cfg: TakeoverConfig) -> list[str]:
 def sources(cfg: TakeoverConfig) -> list[str]:
     """The world models refinement runs in: "" (the rounds' frames), "drives" (+ drives),
     "drives-crashes-only" (+ drives, take-overs not labelled collisions),
-    "more-drives-crashes-only" (+ drives on `more_drive_tracks` too, crashes alone)."""
+    "more-drives-crashes-only" (+ drives on `more_drive_tracks` too, crashes alone),
+    "drives-only" (the exploration drives alone: measured on seed 0, the demonstrations' and
+    take-overs' frames, where the action is a function of the image, taught the others to
+    predict from the frame and ignore the steering)."""
     more = ["drives", *(["drives-crashes-only"] if cfg.refine_crashes_only else [])]
-    more += ["more-drives-crashes-only"] if cfg.more_drive_tracks else []
+    more += ["more-drives-crashes-only", "drives-only"] if cfg.more_drive_tracks else []
     return ["", *more] if cfg.refine_with_drives else [""]
 
 

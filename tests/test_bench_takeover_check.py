@@ -234,11 +234,17 @@ def test_refine_drift_checks_every_refined_policy_and_members_join_the_crash_onl
     assert by_model["takeovers1+drives-crashes-only+paper"]["drift"] == {"moved": 1}
 
 
-def test_more_drive_tracks_adds_a_crash_only_world_model_on_more_exploration_drives(
+def test_more_drive_tracks_adds_world_models_on_more_exploration_drives_and_on_drives_alone(
     monkeypatch, tmp_path
 ):
     runs = tmp_path / "runs" / "noise0-seed0"
-    for source in ("", "drives-", "drives-crashes-only-", "more-drives-crashes-only-"):
+    for source in (
+        "",
+        "drives-",
+        "drives-crashes-only-",
+        "more-drives-crashes-only-",
+        "drives-only-",
+    ):
         (runs / f"takeovers1-{source}world-model").mkdir(parents=True)
         (runs / f"takeovers1-{source}world-model" / "metrics.json").write_text("{}")
     sets = ["--set", "rounds=1", "--set", "refine=true", "--set", "refine_with_drives=true",
@@ -257,7 +263,21 @@ def test_more_drive_tracks_adds_a_crash_only_world_model_on_more_exploration_dri
         str(tmp_path / "data" / "more-drives-noise0-seed0-iter1"),
     ]
     assert "takeovers_as_collisions=false" in world
+    # the fifth world model learns the exploration drives alone; its refinements every frame
+    alone = argv["train-noise0-seed0-takeovers1-drives-only-world-model"]
+    assert alone[alone.index("--episodes") + 1 : alone.index("--out")] == [
+        str(tmp_path / "data" / "round-drives-noise0-seed0-iter1"),
+        str(tmp_path / "data" / "more-drives-noise0-seed0-iter1"),
+    ]
+    assert "takeovers_as_collisions=false" in alone
+    refined = argv["train-noise0-seed0-takeovers1-drives-only-refined"]
+    assert refined[refined.index("--episodes") + 1 : refined.index("--out")] == episodes
+    assert refined[refined.index("--init") + 1] == str(runs / "takeovers1-drives-only-world-model")
     by_model = {r["model"]: r for r in rows}
+    assert (
+        by_model["takeovers1+drives-only+refined"]["frames"]
+        == (by_model["takeovers1+more-drives-crashes-only+refined"]["frames"])
+    )
     assert by_model["takeovers1+more-drives-crashes-only+refined"]["frames"] == (
         by_model["takeovers1+drives-crashes-only+refined"]["frames"] + 1000
     )
