@@ -16,7 +16,10 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from bench.dirl_steps import py
+from bench.dirl_table import cell
 from bench.study_steps import StudyStep
 
 MEMBER_SEED_STRIDE = 100  # member m of the chain with seed s trains with seed s + stride·m
@@ -54,17 +57,12 @@ def read_drift(run: Path) -> dict | None:
 def drift_table(rows: list[dict]) -> str:
     """Markdown: per refined model (mean ± std over its rows' seeds), how far the plan moved and
     how the imagined terms and uncertainties changed; "" when no row has a drift."""
-    import numpy as np
-
     models: dict[str, list[dict]] = {}
     for row in rows:
         if row.get("drift"):
             models.setdefault(row["model"], []).append(row["drift"])
     if not models:
         return ""
-
-    def cell(values: list[float], digits: int = 2, sign: str = "+") -> str:
-        return f"{np.mean(values):{sign}.{digits}f} ± {np.std(values):.{digits}f}"
 
     lines = ["| refined model | seeds | \\|Δ steering\\| | \\|Δ throttle\\| | Δ Σ imagined speed | "
              "Δ Σ p(collision) | Δ Σ uncertainty (of) | members' spread of Σ speed, start → "
@@ -82,8 +80,9 @@ def drift_table(rows: list[dict]) -> str:
                 for k in ("speed_spread", "p_collision_spread")
             ]
         lines.append(
-            f"| {model} | {len(drifts)} | {cell(moved[0], 3, '')} | {cell(moved[1], 3, '')} | "
-            f"{cell(change[0])} | {cell(change[1], 3)} | {cell(change[2])} ({of:.1f}) | "
+            f"| {model} | {len(drifts)} | {cell(moved[0], '.3f')} | {cell(moved[1], '.3f')} | "
+            f"{cell(change[0], '+.2f')} | {cell(change[1], '+.3f')} | {cell(change[2], '+.2f')} "
+            f"({of:.1f}) | "
             f"{spread[0]} | {spread[1]} |"
         )
     return "\n".join(lines)

@@ -303,13 +303,11 @@ def parse(argv: list[str] | None) -> TakeoverConfig:
         )
     needs = [("refine_paper_form", "refine"), ("refine_with_drives", "refine"),
              ("refine_crashes_only", "refine_with_drives"), ("refine_drift", "refine"),
-             ("drift_members", "refine_drift"),
-             ("drift_members", "refine_crashes_only")]  # fmt: skip
+             ("drift_members", "refine_drift"), ("drift_members", "refine_crashes_only"),
+             ("more_drive_tracks", "refine_crashes_only")]  # fmt: skip
     for option, needed in needs:
         if getattr(cfg, option) and not getattr(cfg, needed):
             p.error(f"{option}: {getattr(cfg, option)} needs {needed}=true")
-    if cfg.more_drive_tracks and not cfg.refine_crashes_only:
-        p.error(f"more_drive_tracks: {cfg.more_drive_tracks} needs refine_crashes_only=true")
     if not 0 <= cfg.drift_members <= 16:
         p.error(f"drift_members: {cfg.drift_members} (0 to 16)")
     if not 0 < cfg.round_seconds < 1e5:

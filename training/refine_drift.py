@@ -61,12 +61,12 @@ def imagined_terms(world_model, image, speed, actions, clip: float, correct: boo
     return {term: out[term].sum(dim=1) for term in TERMS}
 
 
-def disagreement(members: list, image, speed, actions, clip: float, correct: bool) -> dict:
-    """Per frame, the standard deviation over the members of the imagined Σ speed (m/s·steps)
-    and Σ p(collision): a deep ensemble's uncertainty about this plan. {} with < 2 members."""
-    if len(members) < 2:
+def disagreement(runs: list[dict]) -> dict:
+    """Per frame, the standard deviation over the members' `imagined_terms` of Σ speed
+    (m/s·steps) and Σ p(collision): a deep ensemble's uncertainty about this plan. {} with
+    fewer than 2 members."""
+    if len(runs) < 2:
         return {}
-    runs = [imagined_terms(m, image, speed, actions, clip, correct) for m in members]
     return {
         f"{term}_spread": torch.stack([r[term] for r in runs]).std(dim=0)
         for term in ("speed", "p_collision")
@@ -83,8 +83,8 @@ def drift(world_model, start_policy, refined_policy, image, speed, clip: float, 
              "refined": plan(refined_policy, image, speed)}  # fmt: skip
     result = {}
     for name, actions in plans.items():
-        terms = imagined_terms(world_model, image, speed, actions, clip, correct)
-        terms |= disagreement(ensemble, image, speed, actions, clip, correct)
+        runs = [imagined_terms(m, image, speed, actions, clip, correct) for m in ensemble]
+        terms = runs[0] | disagreement(runs)  # the refined run's world model judges
         terms["u_total"] = terms["u_image"] + terms["u_speed"] + terms["u_collision"]
         result[name] = {k: float(v.mean()) for k, v in terms.items()}
         result[name] |= {"steering": float(actions[..., 0].mean()),
@@ -112,21 +112,17 @@ def policy_before_refinement(cfg, out: Path):
     return None
 
 
-def report_drift(cfg, out: Path, policy, world_model, episodes, device, limit: int = 256):
+def report_drift(cfg, out: Path, policy, world_model, windows, device, limit: int = 256):
     """For report.md: `drift` of this run's refinement on up to `limit` start frames spread
-    over `episodes` (the held-out ones); None when it refined nothing or its start is unknown.
-    Recorded frames only, no simulator: it works on a car's episodes too."""
-    from training.data import WindowDataset, take
+    over `windows` (a WindowDataset of the held-out episodes); None when it refined nothing or
+    its start is unknown. Recorded frames only, no simulator: it works on a car's episodes."""
+    from training.data import take
     from training.evaluate import spread_indices
 
-    if cfg.refine_steps <= 0 or not episodes:
+    if cfg.refine_steps <= 0 or len(windows) == 0:
         return None
     start = policy_before_refinement(cfg, out)
     if start is None:
-        return None
-    profile = cfg.profile_obj
-    windows = WindowDataset(episodes, profile.horizon, predict_size=profile.predict_size)
-    if len(windows) == 0:
         return None
     batch = take(windows, [int(i) for i in spread_indices(len(windows), limit)])
     models = [m.to(device) for m in (world_model, start, policy)]

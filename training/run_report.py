@@ -59,15 +59,18 @@ def finish_run(
                 writer.add_scalar(f"held_out/{k}", v, iteration)
 
     figures: dict[str, str] = {}
+    # the held-out windows, decoded once for the reveries figure and the refinement's drift
+    windows = None
+    if cfg.figures or cfg.refine_steps > 0:
+        windows = WindowDataset(
+            eval_eps, profile.horizon, predict_size=profile.predict_size,
+            takeovers_as_collisions=cfg.takeovers_as_collisions,
+        )  # fmt: skip
     if cfg.figures:
         fig_dir = out / "figures"
         histories = {name: r.history for name, r in results.items()}
         loss_curves(histories, fig_dir / "loss_curves.png")
         uncertainty_vs_error(arrays, fig_dir / "uncertainty_vs_error.png")
-        windows = WindowDataset(
-            eval_eps, profile.horizon, predict_size=profile.predict_size,
-            takeovers_as_collisions=cfg.takeovers_as_collisions,
-        )  # fmt: skip
         reveries(world_model, windows, device, fig_dir / "reveries.png")
         figures = {
             "Loss curves": "figures/loss_curves.png",
@@ -85,7 +88,9 @@ def finish_run(
             out, None, cfg.counterfactual_layout, cfg.counterfactual_tracks,
             cfg.counterfactual_starts,
         )  # fmt: skip
-    refinement = report_drift(cfg, out, policy, world_model, eval_eps, device)
+    refinement = None
+    if windows is not None:
+        refinement = report_drift(cfg, out, policy, world_model, windows, device)
     stages = {
         name: {
             "steps": r.steps,
