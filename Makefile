@@ -57,7 +57,7 @@ bench: $(STAMP)
 
 # The paper's simulation study, IL against DIRL iterations, -unc and IL at each iteration's
 # frames, refinement chosen by driving, σ 0, 0.5 and 1.0, 3 seeds each: the settings of the
-# README's runs of 2026-11-25 (about 9 hours of them on 2 cores; results in
+# runs of 2026-11-25 in docs/dirl_study.md (about 9 hours of them on 2 cores; results in
 # bench/results/dirl_sim/, resumable). `$(PY) -m bench.dirl_sim --quick` runs every step in minutes.
 study: $(STAMP)
 	$(PY) -m bench.dirl_sim

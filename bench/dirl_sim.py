@@ -96,8 +96,8 @@ def usable_cores() -> int:
 @dataclass
 class StudyConfig:
     """Every number of the study. The defaults are its current design, the settings of the
-    runs of 2026-11-25 (README: "Search from iteration 2" and the noisy demonstrations after it);
-    each README table gives the `--set`s it was run with."""
+    runs of 2026-11-25 (docs/dirl_study.md: "Search from iteration 2" and the noisy demonstrations
+    after it); each table there gives the `--set`s it was run with."""
 
     out: str = "bench/results/dirl_sim"
     profile: str = "cpu"  # model sizes (training/profiles.py)

@@ -61,7 +61,7 @@ class IterateConfig:
     # True: the 0.5 s before a person's take-over (override edge) is labelled a collision for the
     # world model too, as the paper counts its e-stops (drives where the person takes over in
     # time hold the policy's near-crashes only as take-overs). Off by default, measured: on the
-    # counterfactual check (README, "Refinement on top of the take-over rounds", 2026-11-26)
+    # counterfactual check (docs/dirl_study.md, "Refinement on top of the take-over rounds")
     # the same world model ranked action sequences backwards with it (ρ −0.27, −0.24, +0.01,
     # a lifted throttle imagined safest from 73-90 % of the starts) and forwards without it;
     # the take-over labels teach "fast = collision" because the expert brakes after each
@@ -109,8 +109,8 @@ class IterateConfig:
     # terms). Why: on the counterfactual check the gradient's sign at the plan agreed with the
     # truth for throttle 0.67/0.57/0.60 (s11 iteration 1, seeds 0-2) and for steering
     # 0.50/0.42/0.38, and full throttle was the truly best alternative at ~80 % of starts.
-    # Measured by driving (README "null candidates", 3 seeds): no better than random moves of
-    # its size, so the safeguard stays off by default (True, the paper's form)
+    # Measured by driving (docs/dirl_study.md, "null candidates", 3 seeds): no better than
+    # random moves of its size, so the safeguard stays off by default (True, the paper's form)
     refine_steering: bool = True
     # safeguard: refinement by search instead of the gradient (training/refine_search.py):
     # from each start the world model imagines the plan and fixed alternatives (steering ±0.3 /
@@ -127,7 +127,7 @@ class IterateConfig:
     # objective above with recorded speeds and collisions, take-overs counted as collisions)
     # over a ridge baseline on the policy's features; the world model is not used. Why: the
     # world models' judgement of small changes to a plan drove no better than random moves
-    # (README, "null candidates"). False: the paper's refinement in imagination.
+    # (docs/dirl_study.md, "null candidates"). False: the paper's refinement in imagination.
     refine_outcomes: bool = False
     outcome_advantage: bool = True  # False: every window weighs 1 (the control: no outcome)
     outcome_temperature: float = 1.0  # τ, in standard deviations of the advantage

@@ -47,8 +47,8 @@ A fifth, `refine_steering` False, keeps the world model's gradient off the steer
 world model, and the anchor and imitation terms hold the steering. Why: on the counterfactual
 check the gradient's sign at the plan agreed with the true difference 0.38–0.50 of the time for
 steering and 0.57–0.67 for throttle (iteration 1, three seeds), and faster was truly better at
-most starts. Measured by driving (README, "null candidates"): its candidates drove no better
-than the same policy moved as far at random. True: the paper's form.
+most starts. Measured by driving (docs/dirl_study.md, "null candidates"): its candidates drove
+no better than the same policy moved as far at random. True: the paper's form.
 
 Frozen means eval() + requires_grad False (WorldModel.freeze()): no parameter moves and the
 BatchNorm running statistics stay those learned on real data — in train mode the imagined

@@ -3,10 +3,10 @@
 `refine_outcomes` replaces stage 3's imagination with the recorded outcomes of the policy's own
 drives. Why: the world models' judgement of the small changes refinement makes is a coin (the
 gradient's sign at the plan agreed with the simulator 0.50-0.53 of the time) and no refinement
-through them drove better than random moves of the same size (README, "null candidates"). The
-iteration's exploration drives already hold what imagination is asked to predict: the car's
-own actions, perturbed (noise.during_auto), and the speeds, collisions and take-overs that
-followed them, recorded as on a real car (no simulator state).
+through them drove better than random moves of the same size (docs/dirl_study.md, "null
+candidates"). The iteration's exploration drives already hold what imagination is asked to
+predict: the car's own actions, perturbed (noise.during_auto), and the speeds, collisions and
+take-overs that followed them, recorded as on a real car (no simulator state).
 
 For each AUTO step t of the drives (the policy, with its exploration noise, chose the action):
 
