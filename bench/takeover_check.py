@@ -43,7 +43,9 @@ take-over labels; `refine_drift` asks of every refined policy how far refinement
 plan and whether the world model's uncertainty rose there (carrt-refine-drift), and
 `drift_members=K` trains K more crash-only world models from their own initialisations whose
 spread (a deep ensemble's uncertainty) the crash-only rows' drift reports too
-(bench/drift_steps.py).
+(bench/drift_steps.py); `paper_corrected_in=drives-only,…` adds, in the world models it names,
+the paper's form with p̂ corrected ("paper-corrected" ± unc: the class weight divided out of
+the collision probability, every constraint still off).
 """
 
 from __future__ import annotations
@@ -117,6 +119,11 @@ class TakeoverConfig:
     # from its own initialisation and seed, whose spread (a deep ensemble's uncertainty) the
     # crash-only refinements' drift also reports
     drift_members: int = 0
+    # with refine: the world models (sources(); "rounds" for the rounds' frames) in which the
+    # paper's form also runs with p̂ corrected ("paper-corrected" ± unc: every other safeguard
+    # off, the class weight divided out): measured, the paper's form in the drives-alone world
+    # model stopped the car because its raw p̂ is ~10 times the true rate
+    paper_corrected_in: tuple[str, ...] = ()
     eval_tracks: str = StudyConfig.eval_tracks
     parallel: int = 2
     study: StudyConfig = field(default_factory=StudyConfig)
@@ -182,6 +189,9 @@ PAPER_FORM = [
     *("--set", "refine_w_anchor=0", "--set", "refine_w_imitation=0"),
     *("--set", "refine_center_gradient=false", "--set", "collision_prior_correction=false"),
 ]
+# the paper's form with the one safeguard that is a correction, not a constraint: p̂ as a
+# probability (the class weight the world model trained with divided out); later --set wins
+PAPER_CORRECTED = [*PAPER_FORM, "--set", "collision_prior_correction=true"]
 
 
 def world_model_run(cfg: TakeoverConfig, tag: str, source: str = "") -> Path:
@@ -240,8 +250,9 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
     if cfg.drift_members and source == "drives-crashes-only":
         members = member_runs(step, tag, world, seed, cfg.drift_members, world_model_cmd)
     out, unc = {}, ["--no-uncertainty"]
-    for name in forms(cfg):
-        flags = [*(PAPER_FORM if name.startswith("paper") else []),
+    for name in forms(cfg, source):
+        paper = PAPER_CORRECTED if name.startswith("paper-corrected") else PAPER_FORM
+        flags = [*(paper if name.startswith("paper") else []),
                  *(unc if name.endswith("-unc") else [])]  # fmt: skip
         run = runs / f"{prefix}{name}"
         step(f"train-{tag}-{run.name}", iterate_cmd(study, data, run, "--init",
@@ -255,10 +266,22 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
     return out
 
 
-def forms(cfg: TakeoverConfig) -> list[str]:
-    """The refinement variants each world model gets: the study's, the paper's, each -unc."""
-    bases = ("refined", "paper") if cfg.refine_paper_form else ("refined",)
+def forms(cfg: TakeoverConfig, source: str | None = None) -> list[str]:
+    """The refinement variants a world model gets (`source`; None: every world model's): the
+    study's, the paper's, the paper's with p̂ corrected where `paper_corrected_in` names it,
+    each -unc."""
+    bases = ["refined", *(["paper"] if cfg.refine_paper_form else [])]
+    bases += (
+        ["paper-corrected"]
+        if source is not None and name_of(source) in cfg.paper_corrected_in
+        else []
+    )
     return [x for base in bases for x in (base, f"{base}-unc")]
+
+
+def name_of(source: str) -> str:
+    """A world model's name in `paper_corrected_in`: its source, "rounds" for the rounds' frames."""
+    return source or "rounds"
 
 
 def sources(cfg: TakeoverConfig) -> list[str]:
@@ -285,10 +308,10 @@ def pairs(cfg: TakeoverConfig) -> list[tuple[str, str]]:
         k = cfg.rounds
         for source in sources(cfg):
             head = f"takeovers{k}+{source + '+' if source else ''}"
-            for name in forms(cfg):
+            for name in forms(cfg, source):
                 out += [(head + name, f"takeovers{k}")]
                 out += [(head + name, f"IL-equal-takeovers{k}")] if not source else []
-            out += [(head + name, f"{head}{name}-unc") for name in forms(cfg)[::2]]
+            out += [(head + name, f"{head}{name}-unc") for name in forms(cfg, source)[::2]]
     return out
 
 
@@ -308,6 +331,11 @@ def parse(argv: list[str] | None) -> TakeoverConfig:
     for option, needed in needs:
         if getattr(cfg, option) and not getattr(cfg, needed):
             p.error(f"{option}: {getattr(cfg, option)} needs {needed}=true")
+    names = [name_of(s) for s in sources(cfg)] if cfg.refine else []
+    for wanted in cfg.paper_corrected_in:
+        if wanted not in names:
+            p.error(f"paper_corrected_in: {wanted!r} is not one of this check's world models "
+                    f"({', '.join(names) or 'none without refine=true'})")  # fmt: skip
     if not 0 <= cfg.drift_members <= 16:
         p.error(f"drift_members: {cfg.drift_members} (0 to 16)")
     if not 0 < cfg.round_seconds < 1e5:
@@ -321,14 +349,14 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     n, r = len(cfg.demo_noise) * len(cfg.seeds), cfg.rounds
-    refined_rows = cfg.refine * len(forms(cfg)) * len(sources(cfg))
+    refined_rows = cfg.refine * sum(len(forms(cfg, s)) for s in sources(cfg))
     kinds = {"demos": 2 * len(cfg.demo_noise), "train il": n, "takeovers": r * n,
              "train takeovers": r * n, "train il-equal-takeovers": r * n,
              "eval": (1 + 2 * r + refined_rows) * n}  # fmt: skip
     if cfg.refine:
         for source in sources(cfg):
             head = f"train takeovers{r}-{source + '-' if source else ''}"
-            kinds |= {head + name: n for name in ["world-model", *forms(cfg)]}
+            kinds |= {head + name: n for name in ["world-model", *forms(cfg, source)]}
         kinds |= {"drive": n * (1 + bool(cfg.more_drive_tracks))} if cfg.refine_with_drives else {}
         kinds |= {"drift": refined_rows * n} if cfg.refine_drift else {}
         if cfg.drift_members:

@@ -285,6 +285,52 @@ def test_more_drive_tracks_adds_world_models_on_more_exploration_drives_and_on_d
         takeover_check.parse(["--set", "refine=true", "--set", "more_drive_tracks=1100-1144"])
 
 
+def test_paper_corrected_in_adds_the_papers_form_with_p_hat_corrected_in_the_named_world_model(
+    monkeypatch, tmp_path
+):
+    runs = tmp_path / "runs" / "noise0-seed0"
+    for source in ("", "drives-", "drives-crashes-only-", "more-drives-crashes-only-",
+                   "drives-only-"):  # fmt: skip
+        (runs / f"takeovers1-{source}world-model").mkdir(parents=True)
+        (runs / f"takeovers1-{source}world-model" / "metrics.json").write_text("{}")
+    sets = ["--set", "rounds=1", "--set", "refine=true", "--set", "refine_paper_form=true",
+            "--set", "refine_with_drives=true", "--set", "refine_crashes_only=true",
+            "--set", "more_drive_tracks=1100-1144",
+            "--set", "paper_corrected_in=drives-only,rounds"]  # fmt: skip
+    argv, rows = _chain(monkeypatch, tmp_path, *sets)
+    corrected = argv["train-noise0-seed0-takeovers1-drives-only-paper-corrected"]
+    paper = argv["train-noise0-seed0-takeovers1-drives-only-paper"]
+    unc = argv["train-noise0-seed0-takeovers1-drives-only-paper-corrected-unc"]
+    assert corrected[corrected.index("--init") + 1] == str(
+        runs / "takeovers1-drives-only-world-model"
+    )
+    for setting in ("refine_w_anchor", "refine_w_imitation", "refine_center_gradient"):
+        given = [a for a in corrected if a.startswith(f"{setting}=")]
+        assert given[-1] in (f"{setting}=0", f"{setting}=false"), given
+    # the last word on the correction: on for the corrected form, off for the paper's own
+    last = lambda args: [a for a in args if a.startswith("collision_prior_correction=")][-1]  # noqa: E731
+    assert last(corrected) == last(unc) == "collision_prior_correction=true"
+    assert last(paper) == "collision_prior_correction=false"
+    assert "--no-uncertainty" in unc and "--no-uncertainty" not in corrected
+    models = {r["model"] for r in rows}
+    assert {"takeovers1+drives-only+paper-corrected", "takeovers1+paper-corrected-unc"} <= models
+    assert not any("paper-corrected" in m for m in models if "+drives+" in m or "more-drives" in m)
+    cfg = takeover_check.parse(sets)
+    assert ("takeovers1+drives-only+paper-corrected",
+            "takeovers1+drives-only+paper-corrected-unc") in takeover_check.pairs(cfg)  # fmt: skip
+    assert ("takeovers1+paper-corrected", "IL-equal-takeovers1") in takeover_check.pairs(cfg)
+
+
+def test_paper_corrected_in_names_only_the_checks_world_models(capsys):
+    with pytest.raises(SystemExit) as stop:
+        takeover_check.parse(["--set", "refine=true", "--set", "paper_corrected_in=drives-only"])
+    assert stop.value.code == 2
+    assert (
+        "'drives-only' is not one of this check's world models (rounds)"
+        in (capsys.readouterr().err.strip().splitlines()[-1])
+    )
+
+
 def test_the_drift_table_reports_the_move_and_the_spread_over_seeds():
     def one(steer: float, spread: float) -> dict:
         terms = {"u_total": 10.0, "speed_spread": 0.4, "p_collision_spread": 1.0}
