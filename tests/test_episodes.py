@@ -80,6 +80,23 @@ def test_every_field_round_trips(tmp_path):
     assert meta["end"]["monotonic"] >= meta["start"]["monotonic"]
 
 
+def test_the_step_dtype_is_rebuilt_without_pythons_parser(monkeypatch):
+    """numpy parses a sub-array format ("(10,)<f4") with ast.literal_eval, which CPython 3.11
+    cannot run from two threads at once (gh-106905, a spurious SystemError that stopped a
+    study whose chains read episodes side by side); the reader parses shapes itself."""
+    import ast
+
+    def refuse(*_a, **_k):
+        raise AssertionError("dtype_from_json went through Python's parser")
+
+    spec = fmt.dtype_to_json(STEP_DTYPE)
+    assert any(f.startswith("(") for f in spec["formats"]), "the step has sub-arrays"
+    monkeypatch.setattr(ast, "literal_eval", refuse)
+    rebuilt = fmt.dtype_from_json(spec)
+    assert rebuilt == STEP_DTYPE and rebuilt.itemsize == STEP_DTYPE.itemsize
+    assert fmt.dtype_from_json(fmt.dtype_to_json(fmt.step_dtype(3))) == fmt.step_dtype(3)
+
+
 def test_frames_are_a_read_only_memmap(tmp_path):
     ep = read_episode(write_episode(tmp_path, mixed_steps(5)))
     assert isinstance(ep.frames, np.memmap)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import struct
 import zlib
 from pathlib import Path
@@ -100,14 +101,29 @@ def dtype_to_json(dtype: np.dtype) -> dict[str, Any]:
 
 
 def dtype_from_json(spec: dict[str, Any]) -> np.dtype:
+    """The inverse of dtype_to_json. Each sub-array's shape ("(10,)<f4") is parsed here rather
+    than by numpy, which hands it to Python's parser, and CPython 3.11's parser is not safe to
+    run from two threads at once (gh-106905: a spurious SystemError): the study's chains read
+    episodes from threads side by side."""
     return np.dtype(
         {
             "names": spec["names"],
-            "formats": spec["formats"],
+            "formats": [_field_format(f) for f in spec["formats"]],
             "offsets": spec["offsets"],
             "itemsize": spec["itemsize"],
         }
     )
+
+
+_SUBARRAY = re.compile(r"^\((\d+(?:\s*,\s*\d+)*)\s*,?\)(.+)$")
+
+
+def _field_format(text: str) -> np.dtype | tuple[np.dtype, tuple[int, ...]]:
+    """ "<f4" or "(10,)<f4" (what dtype_to_json writes) as a dtype or (base, shape)."""
+    match = _SUBARRAY.match(text)
+    if match is None:
+        return np.dtype(text)
+    return np.dtype(match.group(2)), tuple(int(n) for n in match.group(1).split(","))
 
 
 def format_metadata(dtype: np.dtype) -> dict[str, Any]:
