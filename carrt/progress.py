@@ -32,13 +32,14 @@ def recording_bar(loop: Any, enabled: bool, stream: Any = None) -> Iterator[None
         shown = 0
         while not stop.wait(REFRESH_S):
             live, steps = loop.live, loop.summary.recorded_steps
-            bar.update(steps - shown)
-            shown = steps
+            # the status first, so the render `update` makes shows this tick's, not the last one's
             bar.set_postfix_str(
                 f"{live.mode.name} {live.speed_mps:.1f} m/s, episode {live.episodes}, "
                 f"dropped {loop.summary.dropped_steps}",
                 refresh=False,
             )
+            bar.update(steps - shown)
+            shown = steps
 
     thread = threading.Thread(target=update, name="recording-bar", daemon=True)
     thread.start()
