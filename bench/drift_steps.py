@@ -5,10 +5,9 @@ reports beside the evidential uncertainty.
 Why a check needs it: -unc ended level with DIRL in every setting measured (docs/dirl_study.md,
 "Refinement on top of the take-over rounds, and -unc"). The paper's uncertainty term can only
 change what refinement does if the uncertainty rises where refinement moves the plan; these
-steps measure
-that for the evidential uncertainty of the world model refinement ran in and, with members,
-for a deep ensemble (world models trained apart on the same frames from their own
-initialisations), the estimator usually trusted to grow off the data.
+steps measure that for the evidential uncertainty of the world model refinement ran in and,
+with members, for a deep ensemble (world models trained apart on the same frames from their
+own initialisations), the estimator usually trusted to grow off the data.
 """
 
 from __future__ import annotations

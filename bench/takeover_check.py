@@ -266,16 +266,11 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
     return out
 
 
-def forms(cfg: TakeoverConfig, source: str | None = None) -> list[str]:
-    """The refinement variants a world model gets (`source`; None: every world model's): the
-    study's, the paper's, the paper's with p̂ corrected where `paper_corrected_in` names it,
-    each -unc."""
+def forms(cfg: TakeoverConfig, source: str) -> list[str]:
+    """The refinement variants the world model of `source` gets: the study's, the paper's, the
+    paper's with p̂ corrected where `paper_corrected_in` names it, each -unc."""
     bases = ["refined", *(["paper"] if cfg.refine_paper_form else [])]
-    bases += (
-        ["paper-corrected"]
-        if source is not None and name_of(source) in cfg.paper_corrected_in
-        else []
-    )
+    bases += ["paper-corrected"] if name_of(source) in cfg.paper_corrected_in else []
     return [x for base in bases for x in (base, f"{base}-unc")]
 
 
