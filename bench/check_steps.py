@@ -91,15 +91,28 @@ def report(rows: list[dict], pairs: list[tuple[str, str]]) -> str:
     return "\n".join(lines)
 
 
+# the study fields a check sets from its own (study_for): `--set study.<one of these>` refused
+CHECK_OWNS = ("out", "seeds", "demo_noise", "parallel", "threads", "jobs", "eval_tracks")
+
+
 def read_sets(argv: list[str] | None, cfg, module: str, doc: str, name: str):
     """A check's command line: `--set FIELD=VALUE` on its config dataclass `cfg` (named `name`
-    in `module`). Returns the parser (for one-line errors, exit code 2) and the config."""
+    in `module`), and `--set study.FIELD=VALUE` on the study's settings it runs with (the
+    profile, steps, placements: e.g. `study.profile=paper` on a GPU). Returns the parser (for
+    one-line errors, exit code 2) and the config."""
     p = argparse.ArgumentParser(prog=f"python -m {module}", description=doc.split("\n")[0])
     where = f"{name} in {module.replace('.', '/')}.py"
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                   help=f"a {where} field; tuples comma-separated")  # fmt: skip
+                   help=f"a {where} field, or study.FIELD for a StudyConfig one in "
+                   "bench/dirl_sim.py; tuples comma-separated")  # fmt: skip
+    items = p.parse_args(argv).set
+    study = [item.removeprefix("study.") for item in items if item.startswith("study.")]
+    own = [item for item in items if not item.startswith("study.")]
     try:
-        return p, apply_sets(cfg, p.parse_args(argv).set, where)
+        cfg = apply_sets(cfg, own, where)
+        where = f"StudyConfig in bench/dirl_sim.py; {', '.join(CHECK_OWNS)} are the check's own"
+        studied = apply_sets(cfg.study, study, where, frozen=CHECK_OWNS)
+        return p, dataclasses.replace(cfg, study=studied)
     except UserError as exc:
         p.error(str(exc))
 

@@ -372,7 +372,9 @@ def test_each_round_is_paired_with_imitation_at_its_frames():
      ("refine_crashes_only=true", "needs refine_with_drives=true"),
      ("refine_drift=true", "needs refine=true"),
      ("drift_members=2", "needs refine_drift=true"),
-     ("drift_members=-1", "drift_members")],
+     ("drift_members=-1", "drift_members"), ("il_equal_at=3", "il_equal_at: (3,)"),
+     ("study.out=x", "the check's own"), ("study.profil=paper", "did you mean profile"),
+     ("study.imitation_steps=many", "imitation_steps=many")],
 )  # fmt: skip
 def test_a_bad_setting_is_refused_in_one_line(capsys, setting, says):
     with pytest.raises(SystemExit) as stop:
@@ -401,3 +403,47 @@ def test_the_run_writes_its_results_table_and_completion_against_frames(monkeypa
     table = (tmp_path / f"table-{name}.md").read_text()
     assert "Demonstration noise σ 1:" in table
     assert "| takeovers1 | IL-equal-takeovers1 | +0.100 ± 0.000 |" in table, table
+
+
+def test_il_equal_at_trains_imitation_at_equal_frames_only_at_those_rounds(monkeypatch, tmp_path):
+    argv, rows = _chain(monkeypatch, tmp_path, "--set", "rounds=2", "--set", "il_equal_at=2")
+    assert "train-noise0-seed0-il-equal-takeovers2" in argv
+    assert "train-noise0-seed0-il-equal-takeovers1" not in argv
+    assert [r["model"] for r in rows] == ["IL", "takeovers1", "takeovers2", "IL-equal-takeovers2"]
+    pairs = takeover_check.pairs(takeover_check.parse(["--set", "il_equal_at=2"]))
+    assert ("takeovers2", "IL-equal-takeovers2") in pairs and ("takeovers1", "IL") in pairs
+    assert not any(base == "IL-equal-takeovers1" for _, base in pairs)
+
+
+def test_the_last_trained_policies_are_driven_first_and_the_rows_keep_training_order(
+    monkeypatch, tmp_path
+):
+    driven = []
+
+    def evaluate(study, step, name, onnx, result):
+        driven.append(name)
+        return {"runs": [], "aggregate": {}}
+
+    cfg = takeover_check.parse(["--set", f"out={tmp_path}", "--set", "rounds=2"])
+    monkeypatch.setattr(takeover_check, "evaluate", evaluate)
+    monkeypatch.setattr(takeover_check, "frames_in", lambda paths: 1000 * len(paths))
+    monkeypatch.setattr(dirl_steps, "top_up", lambda pool, frames: [pool / "0"])
+    rows = [{"model": "an earlier chain's"}]
+    takeover_check.chain(cfg, lambda *step: None, 0.0, 0, rows)
+    # a check stopped part way (a lent GPU's minutes) has the last round and its IL first
+    assert driven == [f"noise0-seed0-{m}" for m in ("IL-equal-takeovers2", "takeovers2",
+                      "IL-equal-takeovers1", "takeovers1", "IL")]  # fmt: skip
+    assert [r["model"] for r in rows] == ["an earlier chain's", "IL", "takeovers1",
+                                          "IL-equal-takeovers1", "takeovers2",
+                                          "IL-equal-takeovers2"]  # fmt: skip
+
+
+def test_study_settings_are_set_through_the_check_and_reach_its_commands(monkeypatch, tmp_path):
+    cfg = takeover_check.parse(["--set", "study.profile=paper", "--set", "study.imitation_steps=50",
+                                "--set", "parallel=3"])  # fmt: skip
+    assert cfg.study.profile == "paper" and cfg.study.imitation_steps == 50
+    assert cfg.study.parallel == 3  # the check's own still reaches the study
+    argv, _ = _chain(monkeypatch, tmp_path, "--set", "study.profile=paper",
+                     "--set", "study.imitation_steps=50")  # fmt: skip
+    il = argv["train-noise0-seed0-il"]
+    assert il[il.index("--profile") + 1] == "paper" and "imitation_steps=50" in il
