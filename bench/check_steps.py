@@ -124,7 +124,7 @@ def run_check(cfg, kinds: dict[str, int], chain_fn, extra: bool = True) -> list[
     does), so the ETA leaves them out instead of guessing them at a typical time."""
 
     def walk(step: StudyStep) -> list[dict]:
-        every_noise_demonstrations(cfg.study, step, extra)  # NotRun only while counting
+        every_noise_demonstrations(cfg.study, step, extra)  # passed while counting
         return run_chains([functools.partial(chain_fn, cfg, step, sigma, s)
                            for sigma in cfg.demo_noise for s in cfg.seeds])[0]  # fmt: skip
 

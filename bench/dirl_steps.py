@@ -6,7 +6,6 @@ Split from dirl_sim.py so that the study file reads as its config, its chain and
 
 from __future__ import annotations
 
-import json
 import shutil
 import sys
 from collections import Counter
@@ -14,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from bench.dirl_table import SEARCH_ROW
-from bench.study_steps import NotRun, StudyStep
+from bench.study_steps import NotRun, StudyStep, output_of
 
 if TYPE_CHECKING:
     from bench.dirl_sim import StudyConfig
@@ -178,7 +177,7 @@ def evaluate(cfg: StudyConfig, step: StudyStep, name: str, onnx: Path, result: P
              "--layout", cfg.layout, "--tracks", cfg.eval_tracks, "--seconds",
              str(cfg.eval_seconds), "--seeds", "0", "--jobs", str(cfg.step_jobs()), "--json",
              str(result)), marker)  # fmt: skip
-    return json.loads(result.read_text())
+    return output_of(step, result) or {"runs": [], "aggregate": {}}
 
 
 def select(cfg: StudyConfig, step: StudyStep, name: str, k: int, run: Path, start: Path,

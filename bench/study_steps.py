@@ -16,17 +16,22 @@ how this run's steps compare with theirs. A plain mean over the steps run (befor
 2026-11-25) jumped with the order of the steps: the study of 2026-11-24 said 275 min at its 5th
 step, 60 at its 13th and 153 at its 14th; and it counted the laps copied for a same-weights
 evaluation as steps run. A resumed study first walks its chains without running anything
-(`finished_steps`, what --report does) to count the steps already finished, by kind: they
-take no time when the chains reach them, so they are not in the ETA (before, a resumed study
-counted them as left until its chains reached them). Still inexact: a step resumed from its
-own checkpoint reports only its remaining time, and time a study stood paused (SIGSTOP)
-counts in the step it paused.
+(`finished_steps`) to count the steps already finished, by kind: they take no time when the
+chains reach them, so they are not in the ETA (before, a resumed study counted them as left
+until its chains reached them). That walk goes on past a step that has not run (`counting`),
+so the finished steps behind it count too (until 2026-11-26 it stopped at the first, as
+--report does, and a check resumed with refinements added priced its finished evaluations as
+left: "ETA ~140 min" with ~40 left); a chain stops only where it needs files a step that has
+not run would write (an episode count). Still inexact: a step resumed from its own checkpoint
+reports only its remaining time, and time a study stood paused (SIGSTOP) counts in the step it
+paused.
 """
 
 from __future__ import annotations
 
 import contextlib
 import io
+import json
 import re
 import subprocess
 import threading
@@ -83,6 +88,7 @@ class StudyStep:
         parallel: int = 1,
         cwd: Path | None = None,
         finished_before: Mapping[str, int] | None = None,
+        counting: bool = False,
     ) -> None:
         self.logs = Path(out) / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
@@ -93,7 +99,10 @@ class StudyStep:
         self.finished_before: Counter[str] = Counter(finished_before or {})
         self.found_done: Counter[str] = Counter()
         self.seconds: defaultdict[str, list[float]] = defaultdict(list)  # steps run, by kind
-        self.report_only, self.cwd, self.parallel = report_only, cwd, max(1, parallel)
+        self.report_only, self.cwd, self.parallel = report_only or counting, cwd, max(1, parallel)
+        # A walk that only counts (finished_steps): a step that has not run is passed, not
+        # raised, so the finished steps behind it are found too.
+        self.counting = counting
         self.slots = threading.BoundedSemaphore(self.parallel)
         self.lock = threading.Lock()
         self.failed = threading.Event()
@@ -109,7 +118,7 @@ class StudyStep:
             self.done_by_kind[self.kind(name)] += 1
             if finished:
                 self.found_done[self.kind(name)] += 1
-        if finished:
+        if finished or self.counting:
             return
         if self.report_only:
             raise NotRun(name)
@@ -166,12 +175,23 @@ class StudyStep:
 def finished_steps(out: Path, plan: Mapping[str, int] | int,
                    run: Callable[[StudyStep], object]) -> Counter[str]:  # fmt: skip
     """The steps of a study (`run` walks them all with the given StudyStep) that an earlier
-    invocation finished, by kind: `run` is walked once as --report walks it, nothing run and
-    its printing swallowed, so a resumed study's ETA leaves them out."""
-    probe = StudyStep(out, plan, report_only=True)
-    with contextlib.redirect_stdout(io.StringIO()):
+    invocation finished, by kind: `run` is walked once, nothing run, past the steps that have
+    not run, its printing swallowed, so a resumed study's ETA leaves them out."""
+    probe = StudyStep(out, plan, counting=True)
+    # A chain that needs what a step that has not run would write (its episodes' frames) stops
+    # there; what the walk counted so far stands.
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(Exception, SystemExit):
         run(probe)
     return probe.found_done
+
+
+def output_of(step: Callable, path: Path) -> dict:
+    """A finished step's JSON output (its evaluation, its run's metrics); {} while a counting
+    walk passes a step that has not run (the walk's rows are thrown away). `step` is the walk's
+    StudyStep or any callable that runs steps (one without `counting` never counts)."""
+    if getattr(step, "counting", False) and not path.is_file():
+        return {}
+    return json.loads(path.read_text())
 
 
 def run_chains(chains: Sequence[Callable[[list], None]]) -> tuple[list, list[str]]:

@@ -53,7 +53,6 @@ the collision probability, every constraint still off).
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -79,7 +78,7 @@ from bench.dirl_steps import (
 )
 from bench.dirl_table import plot
 from bench.drift_steps import drift, drift_table, member_runs, read_drift
-from bench.study_steps import StudyStep
+from bench.study_steps import StudyStep, output_of
 
 
 @dataclass
@@ -188,7 +187,7 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
         if "+" in model:  # the world model it was refined in, and its check
             source = model.split("+")[1] if model.count("+") == 2 else ""
             world = world_model_run(cfg, tag, source)
-            metrics = json.loads((world / "metrics.json").read_text())
+            metrics = output_of(step, world / "metrics.json")
             row |= {"world_model": str(world), "counterfactual": metrics.get("counterfactual")}
             row |= {"drift": read_drift(run)} if cfg.refine_drift else {}
         mine.insert(0, row)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from bench import dirl_sim, dirl_steps, study_steps
 from bench.study_steps import TYPICAL_S, StudyStep, finished_steps, run_chains
 
 RECORD = (
@@ -127,10 +128,11 @@ def test_a_resumed_study_leaves_its_finished_steps_out_of_the_eta(tmp_path):
     assert len(intervals(tmp_path)) == 2 and resumed.eta_s() == 0.0
 
 
-def test_finished_steps_behind_an_unfinished_one_are_not_counted_twice(tmp_path):
-    """The walk stops a chain at its first unfinished step (report only), so an evaluation
-    finished earlier but after it is found only when the chain reaches it: then it is done,
-    not left (the take-over check of 2026-11-26 said "ETA ~140 min" with 41 steps left)."""
+def test_finished_steps_behind_an_unfinished_one_are_counted_once(tmp_path):
+    """The walk goes on past a step that has not run, so an evaluation finished earlier but
+    behind it is counted before the chain reaches it, and not again when it does (the take-over
+    check of 2026-11-26 said "ETA ~140 min" with 41 steps left: its walk stopped at the first
+    step that had not run and priced the finished evaluations behind it as left)."""
     (tmp_path / "markers").mkdir()
     (tmp_path / "markers" / "eval-1").touch()  # behind drive-0 in its chain
     plan = {"drive": 1, "eval": 1}
@@ -143,7 +145,42 @@ def test_finished_steps_behind_an_unfinished_one_are_not_counted_twice(tmp_path)
         run_chains([one_chain])
 
     finished = finished_steps(tmp_path, plan, walk)
-    assert finished == {}, "the walk stopped at drive-0"
+    assert finished == {"eval": 1}, "found behind drive-0, which has not run"
     resumed = StudyStep(tmp_path, plan, parallel=1, finished_before=finished)
+    assert resumed.eta_s() == pytest.approx(TYPICAL_S["drive"])
     walk(resumed)
     assert resumed.done_by_kind == {"drive": 1, "eval": 1} and resumed.eta_s() == 0.0
+
+
+def test_the_counting_walk_passes_an_evaluation_that_has_not_run_and_stops_where_files_are_needed(
+    tmp_path,
+):
+    """An evaluation that has not run gives the walk an empty result (its rows are thrown
+    away) and the finished training behind it is counted; a chain that needs episodes a step
+    that has not run would write stops there, and the other chains' counts stand."""
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    (markers / "train-b").touch()
+    cfg = dirl_sim.StudyConfig(out=str(tmp_path))
+
+    def ran(name: str) -> list[str]:
+        return [sys.executable, "-c", RECORD, str(tmp_path / f"{name}.json"), "0"]
+
+    def walk(step: StudyStep) -> None:
+        def evaluated_then_trained(rows):
+            out = dirl_steps.evaluate(cfg, step, "a", tmp_path / "a.onnx", tmp_path / "a.json")
+            rows.append(out)
+            step("train-b", ran("train-b"), markers / "train-b")
+
+        def needs_episodes(rows):
+            step("drive-c", ran("drive-c"), markers / "drive-c")
+            dirl_steps.frames_in([tmp_path / "no-episodes-yet"])
+            step("train-d", ran("train-d"), markers / "train-d")
+
+        run_chains([evaluated_then_trained, needs_episodes])
+
+    plan = {"eval": 1, "train b": 1, "drive": 1, "train d": 1}
+    assert finished_steps(tmp_path, plan, walk) == {"train b": 1}
+    assert intervals(tmp_path) == [], "nothing ran"
+    with pytest.raises(FileNotFoundError):  # a real run reads the evaluation it ran
+        study_steps.output_of(StudyStep(tmp_path, plan), tmp_path / "a.json")
