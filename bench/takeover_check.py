@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -92,6 +93,9 @@ class TakeoverConfig:
     # the rounds IL at equal frames trains at (and is paired with); empty: every round. A
     # trained-from-scratch IL per round costs as much as the round: e.g. 2 to judge round 2 alone
     il_equal_at: tuple[int, ...] = ()
+    # the σ > 0 chains' rounds, each with IL at equal frames at its last round and no
+    # refinement (the paper's robustness table: IL against DIRL); 0: as σ 0's
+    robustness_rounds: int = 0
     demo_noise: tuple[float, ...] = (0.0,)  # σ of the demonstrations and the take-overs
     refine: bool = False  # + a world model on the last round's frames and refinement in it
     # the world models' labels (IterateConfig.takeovers_as_collisions): the 0.5 s before each
@@ -136,6 +140,7 @@ class TakeoverConfig:
 def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: list[dict]) -> None:
     """IL → round 1's take-overs → imitation again → round 2's …, and IL at each round's
     frames, every policy evaluated, for one demonstration noise and seed."""
+    cfg = for_noise(cfg, sigma)
     study = cfg.study
     tag = f"noise{sigma:g}-seed{seed}"
     runs = Path(cfg.out) / "runs" / tag
@@ -192,6 +197,15 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
             row |= {"drift": read_drift(run)} if cfg.refine_drift else {}
         mine.insert(0, row)
     rows.extend(mine)
+
+
+def for_noise(cfg: TakeoverConfig, sigma: float) -> TakeoverConfig:
+    """The settings the chains of demonstration noise `sigma` run with: σ 0's as set; σ > 0's
+    with `robustness_rounds` rounds (when set), IL at equal frames at the last, no refinement."""
+    if sigma == 0 or not cfg.robustness_rounds:
+        return cfg
+    k = cfg.robustness_rounds
+    return dataclasses.replace(cfg, rounds=k, il_equal_at=(k,), refine=False)
 
 
 def equal_at(cfg: TakeoverConfig, k: int) -> bool:
@@ -332,10 +346,12 @@ def parse(argv: list[str] | None) -> TakeoverConfig:
     if cfg.rounds < 1:
         p.error(f"rounds: {cfg.rounds} (1 or more)")
     tracks = cfg.study.iteration_tracks
-    if tracks and cfg.rounds > len(tracks):
-        p.error(
-            f"rounds: {cfg.rounds} (StudyConfig.iteration_tracks has placements for {len(tracks)})"
-        )
+    for option in ("rounds", "robustness_rounds"):
+        if tracks and getattr(cfg, option) > len(tracks):
+            p.error(f"{option}: {getattr(cfg, option)} (StudyConfig.iteration_tracks has "
+                    f"placements for {len(tracks)})")  # fmt: skip
+    if cfg.robustness_rounds < 0:
+        p.error(f"robustness_rounds: {cfg.robustness_rounds} (0: as rounds, or 1 or more)")
     needs = [("refine_paper_form", "refine"), ("refine_with_drives", "refine"),
              ("refine_crashes_only", "refine_with_drives"), ("refine_drift", "refine"),
              ("drift_members", "refine_drift"), ("drift_members", "refine_crashes_only"),
@@ -357,31 +373,46 @@ def parse(argv: list[str] | None) -> TakeoverConfig:
     return dataclasses.replace(cfg, study=study_for(p, cfg))
 
 
+def plan(cfg: TakeoverConfig) -> Counter[str]:
+    """The check's steps by kind (the progress count and the ETA's weights)."""
+    kinds = Counter({"demos": 2 * len(cfg.demo_noise)})
+    for sigma in cfg.demo_noise:
+        mine, n = for_noise(cfg, sigma), len(cfg.seeds)
+        r = mine.rounds
+        equal = sum(equal_at(mine, k) for k in range(1, r + 1))
+        refined_rows = mine.refine * sum(len(forms(mine, s)) for s in sources(mine))
+        kinds += {"train il": n, "takeovers": r * n, "train takeovers": r * n,
+                  "train il-equal-takeovers": equal * n,
+                  "eval": (1 + r + equal + refined_rows) * n}  # fmt: skip
+        if not mine.refine:
+            continue
+        for source in sources(mine):
+            head = f"train takeovers{r}-{source + '-' if source else ''}"
+            kinds += {head + name: n for name in ["world-model", *forms(mine, source)]}
+        kinds += (
+            {"drive": n * (1 + bool(mine.more_drive_tracks))} if mine.refine_with_drives else {}
+        )
+        kinds += {"drift": refined_rows * n} if mine.refine_drift else {}
+        if mine.drift_members:
+            kinds += {f"train takeovers{r}-drives-crashes-only-member": mine.drift_members * n}
+    return +kinds
+
+
 def main(argv: list[str] | None = None) -> int:
     cfg = parse(argv)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    n, r = len(cfg.demo_noise) * len(cfg.seeds), cfg.rounds
-    equal = sum(equal_at(cfg, k) for k in range(1, r + 1))
-    refined_rows = cfg.refine * sum(len(forms(cfg, s)) for s in sources(cfg))
-    kinds = {"demos": 2 * len(cfg.demo_noise), "train il": n, "takeovers": r * n,
-             "train takeovers": r * n, "train il-equal-takeovers": equal * n,
-             "eval": (1 + r + equal + refined_rows) * n}  # fmt: skip
-    if cfg.refine:
-        for source in sources(cfg):
-            head = f"train takeovers{r}-{source + '-' if source else ''}"
-            kinds |= {head + name: n for name in ["world-model", *forms(cfg, source)]}
-        kinds |= {"drive": n * (1 + bool(cfg.more_drive_tracks))} if cfg.refine_with_drives else {}
-        kinds |= {"drift": refined_rows * n} if cfg.refine_drift else {}
-        if cfg.drift_members:
-            kinds |= {f"train takeovers{r}-drives-crashes-only-member": cfg.drift_members * n}
-    rows = run_check(cfg, kinds, chain)
+    rows = run_check(cfg, dict(plan(cfg)), chain)
     name = f"takeovers{suffix(cfg)}-noise{'_'.join(f'{x:g}' for x in cfg.demo_noise)}"
     figure = out / f"completion_vs_frames-{name}.png"
     refined = ", the last refined in world models" if cfg.refine else ""
     plot(rows, figure, f"IL and rounds of take-overs{refined}, mean ± std over seeds")
-    text = write_results(cfg, rows, started, f"-{name}", lambda _rows: pairs(cfg))
+
+    def pairs_of(mine: list[dict]) -> list[tuple[str, str]]:
+        return pairs(for_noise(cfg, mine[0]["demo_noise"])) if mine else []
+
+    text = write_results(cfg, rows, started, f"-{name}", pairs_of)
     moves = drift_table(rows)
     if moves:
         text += "\n\nWhere refinement moved the plan (carrt-refine-drift):\n\n" + moves
