@@ -374,7 +374,9 @@ def test_each_round_is_paired_with_imitation_at_its_frames():
      ("drift_members=2", "needs refine_drift=true"),
      ("drift_members=-1", "drift_members"), ("il_equal_at=3", "il_equal_at: (3,)"),
      ("study.out=x", "the check's own"), ("study.profil=paper", "did you mean profile"),
-     ("study.imitation_steps=many", "imitation_steps=many")],
+     ("study.imitation_steps=many", "imitation_steps=many"),
+     ("robustness_rounds=-1", "robustness_rounds: -1"),
+     ("robustness_rounds=4", "robustness_rounds: 4")],
 )  # fmt: skip
 def test_a_bad_setting_is_refused_in_one_line(capsys, setting, says):
     with pytest.raises(SystemExit) as stop:
@@ -447,3 +449,29 @@ def test_study_settings_are_set_through_the_check_and_reach_its_commands(monkeyp
                      "--set", "study.imitation_steps=50")  # fmt: skip
     il = argv["train-noise0-seed0-il"]
     assert il[il.index("--profile") + 1] == "paper" and "imitation_steps=50" in il
+
+
+def test_robustness_rounds_give_the_noisy_chains_their_own_rounds_and_il_at_the_last(
+    monkeypatch, tmp_path
+):
+    sets = ("--set", "rounds=3", "--set", "il_equal_at=3", "--set", "robustness_rounds=2",
+            "--set", "refine=true", "--set", "demo_noise=0,1.0")  # fmt: skip
+    argv, rows = _chain(monkeypatch, tmp_path, *sets, sigma=1.0, seed=0)
+    assert [r["model"] for r in rows] == ["IL", "takeovers1", "takeovers2", "IL-equal-takeovers2"]
+    assert not any("rounds3" in name or "world-model" in name for name in argv)
+    world = tmp_path / "runs" / "noise0-seed0" / "takeovers3-world-model"
+    world.mkdir(parents=True)
+    (world / "metrics.json").write_text(json.dumps({"counterfactual": None}))
+    argv, rows = _chain(monkeypatch, tmp_path, *sets, sigma=0.0, seed=0)  # σ 0: as set
+    assert (
+        "takeovers-noise0-seed0-rounds3" in argv and "train-noise0-seed0-takeovers3-refined" in argv
+    )
+    assert [r["model"] for r in rows if "IL-equal" in r["model"]] == ["IL-equal-takeovers3"]
+    cfg = takeover_check.parse(list(sets))
+    noisy = takeover_check.pairs(takeover_check.for_noise(cfg, 1.0))
+    assert ("takeovers2", "IL-equal-takeovers2") in noisy and not any("+" in m for m, _ in noisy)
+    plan = takeover_check.plan(cfg)  # 3 seeds: σ 0 three rounds and refinement, σ 1 two rounds
+    assert plan["takeovers"] == 3 * 3 + 2 * 3 and plan["train il-equal-takeovers"] == 3 + 3
+    assert plan["train takeovers3-world-model"] == 3 and plan["demos"] == 4
+    assert plan["eval"] == 3 * (1 + 3 + 1 + 2) + 3 * (1 + 2 + 1)
+    assert takeover_check.for_noise(takeover_check.parse(["--set", "rounds=2"]), 1.0).rounds == 2
