@@ -12,7 +12,12 @@ results do not depend on how the chains interleave.
 
 The ETA weighs the steps left by their kind (a world model's training takes 20 times a drive):
 each kind at the mean of its steps run so far, a kind not run yet at its typical time scaled by
-how this run's steps compare with theirs. A plain mean over the steps run (before
+how this run's steps of the same family compare with theirs: trainings (torch, bound by the
+cores' arithmetic) and drives (the simulator's processes) scale apart, because one family's
+speed says little of the other's. Until 2026-11-27 one scale served both, from stale typical
+times: the one-command study of 2026-11-26 made its demonstrations 5 times faster than their
+typical time, the scale took every training down by as much, and the ETA said 48 min after
+them for 93 min of work. A plain mean over the steps run (before
 2026-11-25) jumped with the order of the steps: the study of 2026-11-24 said 275 min at its 5th
 step, 60 at its 13th and 153 at its 14th; and it counted the laps copied for a same-weights
 evaluation as steps run. A resumed study first walks its chains without running anything
@@ -41,14 +46,21 @@ from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-# Seconds a step of each kind took in the studies of 2026-11-24/25 (2-core EPYC, two steps at
-# once with one torch thread and one simulator process each; bench/results/*/logs): the ETA's
-# guess for a kind until a step of it has run here. "train dirl1" trains its world model from
-# scratch, later iterations continue it. "eval" is twice those runs' 150 s: 100 placements × 30
-# simulated s since 2026-11-25 against 25 × 60 (bench.redrive: ~140 s each with both cores).
-TYPICAL_S = {"demos": 240, "train il": 900, "train dirl1": 1400, "train dirl": 890,
-             "train il-equal": 830, "train unc": 150, "train search": 215, "select": 260,
-             "eval": 300, "drive": 70, "takeovers": 50}  # fmt: skip
+# Seconds a step of each kind took, two steps at once on the 2-core EPYC with one torch thread and
+# one simulator process each: the ETA's guess for a kind until a step of it has run here. The
+# one-command study of 2026-11-26 (docs/dirl_study.md; bench.takeover_check, the `cpu` profile):
+# demonstrations (one pool), imitation and IL at equal frames (the same 3000 steps), a round's
+# take-over drives and its re-imitation, world models, refinements, evaluations of 100
+# placements × 30 simulated s (that run's 50 took 47-65 s). The full study's kinds of
+# 2026-11-24/25 (bench/dirl_sim.py: "train dirl1" trains its world model from scratch and
+# refines, later iterations continue it; -unc, the step search, selection by driving,
+# exploration drives) are from those runs, before imitation was made faster.
+TYPICAL_S = {"demos": 44, "train il": 270, "train il-equal": 270, "takeovers": 35,
+             "train takeovers": 105, "train il-equal-takeovers": 270, "train world-model": 390,
+             "train refine": 48, "eval": 110, "train dirl1": 1400, "train dirl": 890,
+             "train unc": 150, "train search": 215, "select": 260, "drive": 70}  # fmt: skip
+# The kinds that drive the simulator; every other kind trains or runs a network (torch).
+SIMULATOR_KINDS = frozenset({"demos", "takeovers", "eval", "select", "drive"})
 ANY = "step"  # the one kind of a plan given as a plain count
 
 
@@ -63,6 +75,24 @@ def step_kind(name: str) -> str:
         return head
     model = re.sub(r"^noise[^-]*-seed\d+-", "", rest)
     return "train dirl1" if model == "dirl1" else "train " + re.sub(r"\d+$", "", model)
+
+
+def is_simulator(kind: str) -> bool:
+    """Whether a step of this kind drives the simulator (its time is the simulator's), not torch."""
+    return kind in SIMULATOR_KINDS
+
+
+def typical_s(kind: str) -> float | None:
+    """TYPICAL_S of a kind, a check's world models and refinements by what they do
+    ("train takeovers3-drives-world-model" → "train world-model", "train
+    takeovers3-refined-unc" → "train refine"); None for a kind with no typical time."""
+    if kind in TYPICAL_S:
+        return TYPICAL_S[kind]
+    if kind.startswith("train ") and kind.endswith(("world-model", "-member")):
+        return TYPICAL_S["train world-model"]
+    if kind.startswith("train ") and re.search(r"-(refined|paper)", kind):
+        return TYPICAL_S["train refine"]
+    return None
 
 
 class NotRun(Exception):
@@ -153,18 +183,29 @@ class StudyStep:
         an earlier invocation finished and the chains have not reached yet take none."""
         with self.lock:
             mean = {k: sum(v) / len(v) for k, v in self.seconds.items() if v}
-            typical = [(TYPICAL_S[k], m) for k, m in mean.items() if k in TYPICAL_S]
-            scale = sum(m for _, m in typical) / sum(t for t, _ in typical) if typical else 1.0
-            ran = [t for v in self.seconds.values() for t in v]
-            other = sum(ran) / len(ran) if ran else 0.0  # a kind with no typical time
             left = 0.0
             for kind, n in self.plan.items():
-                each = mean.get(kind, TYPICAL_S[kind] * scale if kind in TYPICAL_S else other)
+                each = mean.get(kind)
+                if each is None:
+                    each = self._guess(kind, mean)
                 # finished, not reached yet; never negative: the walk stops a chain at its first
                 # unfinished step, so finished steps after it are found only when reached
                 ahead = max(self.finished_before[kind] - self.found_done[kind], 0)
                 left += max(n - self.done_by_kind[kind] - ahead, 0) * each
         return left / self.parallel
+
+    def _guess(self, kind: str, mean: Mapping[str, float]) -> float:
+        """A kind not run yet: its typical time scaled as this run's steps of its family compare
+        with theirs (1 while none has run); a kind with no typical time at the mean of its
+        family's steps run so far (of every step while none has)."""
+        family = {k: m for k, m in mean.items() if is_simulator(k) == is_simulator(kind)}
+        typical = typical_s(kind)
+        if typical is not None:
+            known = [(typical_s(k), m) for k, m in family.items() if typical_s(k) is not None]
+            scale = sum(m for _, m in known) / sum(t for t, _ in known) if known else 1.0
+            return typical * scale
+        ran = [t for k, v in self.seconds.items() if k in (family or mean) for t in v]
+        return sum(ran) / len(ran) if ran else 0.0
 
     def _progress(self, name: str, what: str) -> None:
         eta = self.eta_s() / 60

@@ -475,3 +475,20 @@ def test_robustness_rounds_give_the_noisy_chains_their_own_rounds_and_il_at_the_
     assert plan["train takeovers3-world-model"] == 3 and plan["demos"] == 4
     assert plan["eval"] == 3 * (1 + 3 + 1 + 2) + 3 * (1 + 2 + 1)
     assert takeover_check.for_noise(takeover_check.parse(["--set", "rounds=2"]), 1.0).rounds == 2
+
+
+def test_every_step_of_the_checks_plan_has_a_typical_time_for_the_eta():
+    """The ETA's guess for a kind not run yet (bench/study_steps.typical_s): every kind the
+    check plans, with every world model and refinement it can add, has one; only the drift
+    reading (a network's forward passes) is guessed from its family's steps."""
+    from bench.study_steps import typical_s
+
+    cfg = takeover_check.parse(
+        ["--set", "rounds=3", "--set", "refine=true", "--set", "refine_paper_form=true",
+         "--set", "refine_with_drives=true", "--set", "refine_crashes_only=true",
+         "--set", "refine_drift=true", "--set", "drift_members=2",
+         "--set", "more_drive_tracks=1100-1104", "--set", "paper_corrected_in=drives-only",
+         "--set", "demo_noise=0,1.0", "--set", "robustness_rounds=2"]
+    )  # fmt: skip
+    kinds = set(takeover_check.plan(cfg))
+    assert {k for k in kinds if typical_s(k) is None} == {"drift"}, kinds

@@ -83,21 +83,69 @@ def test_report_only_runs_nothing_and_names_each_chain_s_first_missing_step(tmp_
 
 
 def test_the_eta_weighs_the_steps_left_by_their_kind(tmp_path):
-    """Three trainings and three evaluations planned, one at a time. After one training of
-    600 s (typical 900: this machine is at 2/3) the evaluations are guessed at 2/3 of their
-    typical 300 s (bench/study_steps.TYPICAL_S); once one has run, at its own time."""
+    """Three trainings and three evaluations planned, one at a time. Before anything ran, each
+    kind at its typical time (bench/study_steps.TYPICAL_S); a kind that ran, at its own mean;
+    a step reused from identical weights counts as done and took nothing."""
+    il, ev = TYPICAL_S["train il"], TYPICAL_S["eval"]
     step = StudyStep(tmp_path, {"train il": 3, "eval": 3}, parallel=1)
+    assert step.eta_s() == pytest.approx(3 * il + 3 * ev)
     step.done_by_kind["train il"] += 1
-    step.seconds["train il"].append(600.0)
-    assert step.eta_s() == pytest.approx(2 * 600 + 3 * 200)
+    step.seconds["train il"].append(2 * il)
+    assert step.eta_s() == pytest.approx(2 * 2 * il + 3 * ev), "a training says nothing of drives"
     step.done_by_kind["eval"] += 1
     step.seconds["eval"].append(50.0)
-    assert step.eta_s() == pytest.approx(2 * 600 + 2 * 50)
+    assert step.eta_s() == pytest.approx(2 * 2 * il + 2 * 50)
     step.reuse("eval-noise0-seed0-dirl1-imitated", "same weights")  # counted, took nothing
-    assert step.eta_s() == pytest.approx(2 * 600 + 1 * 50)
+    assert step.eta_s() == pytest.approx(2 * 2 * il + 1 * 50)
     assert step.seconds["eval"] == [50.0]
     two = StudyStep(tmp_path, {"train il": 3, "eval": 3}, parallel=2)
-    assert two.eta_s() == pytest.approx((3 * 900 + 3 * 300) / 2), "typical times, two at once"
+    assert two.eta_s() == pytest.approx((3 * il + 3 * ev) / 2), "typical times, two at once"
+
+
+def test_a_kind_not_run_yet_is_scaled_by_its_own_family_only(tmp_path):
+    """The one-command study of 2026-11-26 made its demonstrations 5 times faster than their
+    (then stale) typical time, and one scale took every training down as much: "ETA ~48 min"
+    for 93. Demonstrations at 1/5 of typical now scale the evaluations (the simulator's
+    family), not the trainings; a training at twice its typical time scales the other
+    trainings, a world model among them, found by what it does."""
+    plan = {"demos": 2, "eval": 2, "train il": 1, "train takeovers": 2,
+            "train takeovers3-drives-world-model": 1}  # fmt: skip
+    step = StudyStep(tmp_path, plan, parallel=1)
+    step.done_by_kind["demos"] += 1
+    step.seconds["demos"].append(TYPICAL_S["demos"] / 5)
+    trainings = TYPICAL_S["train il"] + 2 * TYPICAL_S["train takeovers"]
+    trainings += TYPICAL_S["train world-model"]
+    assert step.eta_s() == pytest.approx(
+        TYPICAL_S["demos"] / 5 + 2 * TYPICAL_S["eval"] / 5 + trainings
+    )
+    step.done_by_kind["train il"] += 1
+    step.seconds["train il"].append(2 * TYPICAL_S["train il"])
+    trainings = 2 * (2 * TYPICAL_S["train takeovers"] + TYPICAL_S["train world-model"])
+    assert step.eta_s() == pytest.approx(
+        TYPICAL_S["demos"] / 5 + 2 * TYPICAL_S["eval"] / 5 + trainings
+    )
+
+
+def test_typical_times_name_a_checks_world_models_and_refinements_by_what_they_do():
+    assert study_steps.typical_s("train takeovers3-world-model") == TYPICAL_S["train world-model"]
+    assert (
+        study_steps.typical_s("train takeovers3-drives-crashes-only-member")
+        == TYPICAL_S["train world-model"]
+    )
+    for kind in ("train takeovers3-refined-unc", "train takeovers3-drives-paper-corrected"):
+        assert study_steps.typical_s(kind) == TYPICAL_S["train refine"], kind
+    assert study_steps.typical_s("train takeovers") == TYPICAL_S["train takeovers"]
+    assert study_steps.typical_s("drift") is None and study_steps.typical_s("train other") is None
+
+
+def test_a_kind_with_no_typical_time_is_guessed_from_its_family(tmp_path):
+    step = StudyStep(tmp_path, {"drift": 2, "demos": 2}, parallel=1)
+    assert step.eta_s() == pytest.approx(2 * TYPICAL_S["demos"]), "nothing ran: no guess"
+    step.done_by_kind["demos"] += 1
+    step.seconds["demos"].append(10.0)
+    assert step.eta_s() == pytest.approx(10.0 + 2 * 10.0), "every step's mean, none of its own"
+    step.seconds["train il"].append(300.0)
+    assert step.eta_s() == pytest.approx(10.0 + 2 * 300.0), "its family's mean"
 
 
 def test_a_plain_count_plans_one_kind_of_step(tmp_path, capsys):
