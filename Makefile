@@ -62,7 +62,8 @@ bench: $(STAMP)
 study: $(STAMP)
 	$(PY) -m bench.dirl_sim
 
-# Reproduce carrt/assets/demo_policy.onnx, the policy `make demo` drives with (demonstrations,
+# Make carrt/assets/demo_policy.onnx again (same recipe, not the same bytes since the simulator
+# changed after 2026-11-22), the policy `make demo` drives with (demonstrations,
 # imitation, two rounds of expert take-overs each followed by imitation, carrt eval; about
 # 56 min on 2 cores).
 demo-policy: $(STAMP) core
