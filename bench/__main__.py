@@ -7,26 +7,15 @@ table can say where its numbers came from.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import importlib
 import json
-import os
-import platform
 import sys
 from pathlib import Path
 
+from bench.provenance import environment
+
 HERE = Path(__file__).parent
 RESULTS = HERE / "results"
-
-
-def machine() -> dict:
-    return {
-        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpus": os.cpu_count(),
-    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.only or names:
         module = importlib.import_module(f"bench.{name}")
         print(f"== {name}", flush=True)
-        result = {"machine": machine(), **module.run()}
+        result = {"machine": environment(), **module.run()}
         path = RESULTS / f"{name}.json"
         path.write_text(json.dumps(result, indent=2) + "\n")
         print(f"   -> {path}", flush=True)

@@ -83,6 +83,7 @@ from bench.dirl_table import (
     plot,
     table,
 )
+from bench.provenance import environment
 from bench.study_steps import StudyStep, finished_steps, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
@@ -392,7 +393,8 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         report += f"\n\nNot finished yet (--report): {', '.join(missing)}."
     results = {"config": dataclasses.asdict(cfg), "rows": rows, "complete": not missing,
-               "not_finished": missing, "wall_s": time.monotonic() - started}  # fmt: skip
+               "not_finished": missing, "wall_s": time.monotonic() - started,
+               "environment": environment()}  # fmt: skip
     (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     (out / "table.md").write_text(report + "\n")
     plot(rows, out / "completion_vs_frames.png")

@@ -19,6 +19,7 @@ import json
 import sys
 from pathlib import Path
 
+from bench.provenance import environment
 from carrt.episodes.reader import list_episodes, read_episode
 from training import demo_policy
 
@@ -71,7 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     takeovers = sum(read_episode(p).n for p in list_episodes([str(work / "takeovers")]))
     rows.append({"model": "imitation + take-overs", "frames": full + takeovers,
                  **judge(work / "il2" / "policy.onnx", a.jobs)})  # fmt: skip
-    (work / "curve.json").write_text(json.dumps({"eval": EVAL, "rows": rows}, indent=2) + "\n")
+    curve = {"eval": EVAL, "rows": rows, "environment": environment()}
+    (work / "curve.json").write_text(json.dumps(curve, indent=2) + "\n")
     lines = ["| model | frames | completion | collisions / min | avg m/s | laps |",
              "|---|---|---|---|---|---|"]  # fmt: skip
     for r in rows:

@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 from bench.dirl_table import BEFORE_REFINEMENT, comparison, table
+from bench.provenance import environment
 from carrt.errors import EXIT_USAGE, UserError
 from carrt.eval_cmd import parse_int_list
 from carrt.policy import file_sha256
@@ -133,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
         "held-out placements; mean ± std over seeds):\n\n" + comparison(new_rows)
     )
     redriven = {"from": a.results, "tracks": a.tracks, "seconds": a.seconds, "layout": a.layout}
-    payload = {"config": study.get("config"), "redriven": redriven, "rows": new_rows}
+    payload = {"config": study.get("config"), "redriven": redriven, "rows": new_rows,
+               "environment": environment()}  # fmt: skip
     (out / "results.json").write_text(json.dumps(payload, indent=2) + "\n")
     (out / "table.md").write_text(report + "\n")
     print("\n" + report + f"\n\nwritten: {out / 'results.json'}, {out / 'table.md'}")

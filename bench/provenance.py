@@ -1,0 +1,48 @@
+"""Where a benchmark's or a study's numbers came from: the date, the machine, the code and the
+versions of the libraries that compute them.
+
+Why: the study's demonstrations and trainings are bit-reproducible within one install (two
+runs of the same demonstrations and of the same imitation give identical episodes and weights,
+measured 2026-11-27), yet the same σ 0 pool held 19,817, 19,710 and 19,815 frames in three
+sessions whose data-generating code had not changed; each session installs its own venv, and
+the dependencies (numpy, OpenCV, …) are not pinned. A results file that names what computed it
+lets two runs be told apart by more than their dates.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import platform
+from importlib import metadata
+
+from carrt.version import code_version
+
+# The distributions whose arithmetic reaches a number: the simulator and data (numpy, OpenCV),
+# training (torch), driving (onnxruntime), the trajectories' plots (matplotlib), the videos (av).
+PACKAGES = ("numpy", "torch", "opencv-python-headless", "opencv-python", "onnxruntime",
+            "onnxruntime-gpu", "onnx", "gymnasium", "pygame", "matplotlib", "av")  # fmt: skip
+
+
+def package_versions() -> dict[str, str]:
+    """The installed version of each of PACKAGES that is installed."""
+    versions = {}
+    for name in PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue
+    return versions
+
+
+def environment() -> dict:
+    """The date (UTC), the machine, carrt's code version and the library versions."""
+    return {
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "code_version": code_version(),
+        "packages": package_versions(),
+    }
