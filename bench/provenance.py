@@ -3,10 +3,11 @@ versions of the libraries that compute them.
 
 Why: the study's demonstrations and trainings are bit-reproducible within one install (two
 runs of the same demonstrations and of the same imitation give identical episodes and weights,
-measured 2026-11-27), yet the same σ 0 pool held 19,817, 19,710 and 19,815 frames in three
-sessions whose data-generating code had not changed; each session installs its own venv, and
-the dependencies (numpy, OpenCV, …) are not pinned. A results file that names what computed it
-lets two runs be told apart by more than their dates.
+measured 2026-11-27), yet the same σ 0 pool held 19,710 frames in the one-command study of
+2026-11-26 and 19,815 on 2026-11-27 with no commit to carrt/ or training/ between them: each
+session installs its own venv, and the dependencies (numpy, OpenCV, …) are not pinned (the
+likely cause; the earlier venv's versions were not recorded, so not measured). A results file
+that names what computed it lets two runs be told apart by more than their dates.
 """
 
 from __future__ import annotations
