@@ -129,6 +129,11 @@ class StudyStep:
         self.finished_before: Counter[str] = Counter(finished_before or {})
         self.found_done: Counter[str] = Counter()
         self.seconds: defaultdict[str, list[float]] = defaultdict(list)  # steps run, by kind
+        # Steps running now: name → (kind, monotonic start). A step counts as done when it has
+        # finished, not when its chain reaches it: until 2026-11-27 a step waiting for a slot
+        # counted as done, so with five chains and two slots the ETA left out three world
+        # models' trainings (~14 min said for ~24).
+        self.running: dict[str, tuple[str, float]] = {}
         self.report_only, self.cwd, self.parallel = report_only or counting, cwd, max(1, parallel)
         # A walk that only counts (finished_steps): a step that has not run is passed, not
         # raised, so the finished steps behind it are found too.
@@ -142,13 +147,13 @@ class StudyStep:
 
     def __call__(self, name: str, argv: list[str], marker: Path) -> None:
         """Run unless `marker` exists; touch it when the command succeeded."""
-        finished = marker.exists()
-        with self.lock:
-            self.done += 1
-            self.done_by_kind[self.kind(name)] += 1
-            if finished:
-                self.found_done[self.kind(name)] += 1
+        kind, finished = self.kind(name), marker.exists()
         if finished or self.counting:
+            with self.lock:
+                self.done += 1
+                self.done_by_kind[kind] += 1
+                if finished:
+                    self.found_done[kind] += 1
             return
         if self.report_only:
             raise NotRun(name)
@@ -157,10 +162,16 @@ class StudyStep:
                 raise Stopped(name)
             log = self.logs / f"{name}.log"
             started = time.monotonic()
-            with log.open("w") as fh:
-                fh.write("$ " + " ".join(argv) + "\n")
-                fh.flush()
-                code = subprocess.call(argv, cwd=self.cwd, stdout=fh, stderr=subprocess.STDOUT)
+            with self.lock:
+                self.running[name] = (kind, started)
+            try:
+                with log.open("w") as fh:
+                    fh.write("$ " + " ".join(argv) + "\n")
+                    fh.flush()
+                    code = subprocess.call(argv, cwd=self.cwd, stdout=fh, stderr=subprocess.STDOUT)
+            finally:
+                with self.lock:
+                    del self.running[name]
         took = time.monotonic() - started
         if code != 0:
             self.failed.set()
@@ -168,7 +179,9 @@ class StudyStep:
         marker.parent.mkdir(parents=True, exist_ok=True)
         marker.touch()
         with self.lock:
-            self.seconds[self.kind(name)].append(took)
+            self.done += 1
+            self.done_by_kind[kind] += 1
+            self.seconds[kind].append(took)
         self._progress(name, f"{took:.0f} s")
 
     def reuse(self, name: str, why: str) -> None:
@@ -183,7 +196,7 @@ class StudyStep:
         an earlier invocation finished and the chains have not reached yet take none."""
         with self.lock:
             mean = {k: sum(v) / len(v) for k, v in self.seconds.items() if v}
-            left = 0.0
+            now, left = time.monotonic(), 0.0
             for kind, n in self.plan.items():
                 each = mean.get(kind)
                 if each is None:
@@ -191,7 +204,9 @@ class StudyStep:
                 # finished, not reached yet; never negative: the walk stops a chain at its first
                 # unfinished step, so finished steps after it are found only when reached
                 ahead = max(self.finished_before[kind] - self.found_done[kind], 0)
-                left += max(n - self.done_by_kind[kind] - ahead, 0) * each
+                running = [now - t for k, t in self.running.values() if k == kind]
+                waiting = max(n - self.done_by_kind[kind] - ahead - len(running), 0)
+                left += waiting * each + sum(max(each - elapsed, 0.0) for elapsed in running)
         return left / self.parallel
 
     def _guess(self, kind: str, mean: Mapping[str, float]) -> float:

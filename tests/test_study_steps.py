@@ -7,6 +7,7 @@ from __future__ import annotations
 import functools
 import json
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -232,3 +233,36 @@ def test_the_counting_walk_passes_an_evaluation_that_has_not_run_and_stops_where
     assert intervals(tmp_path) == [], "nothing ran"
     with pytest.raises(FileNotFoundError):  # a real run reads the evaluation it ran
         study_steps.output_of(StudyStep(tmp_path, plan), tmp_path / "a.json")
+
+
+def test_a_step_counts_as_done_when_it_finishes_and_a_running_one_by_what_is_left(tmp_path):
+    """Five world models planned, two slots: until 2026-11-27 a step waiting for a slot counted
+    as done, and the ETA said ~14 min for ~24. Now two running steps count by what is left of
+    their expected time, the three waiting ones in full."""
+    each = TYPICAL_S["train world-model"]
+    step = StudyStep(tmp_path, {"train takeovers3-world-model": 5}, parallel=2)
+    now = study_steps.time.monotonic()
+    step.running = {"a": ("train takeovers3-world-model", now - 100.0),
+                    "b": ("train takeovers3-world-model", now - 10 * each)}  # fmt: skip
+    assert step.eta_s() == pytest.approx((3 * each + (each - 100.0) + 0.0) / 2, abs=1.0)
+
+
+def test_the_progress_count_and_the_eta_see_a_step_only_once_it_finished(tmp_path):
+    """Two chains, one slot: while the first step runs, the second waits and neither is done."""
+    seen = []
+    step = StudyStep(tmp_path, {"step": 2}, parallel=1)
+
+    def chain(name, rows):
+        argv = [sys.executable, "-c", "import time; time.sleep(0.5)"]
+        step(name, argv, tmp_path / f".done-{name}")
+
+    with ThreadPoolExecutor(max_workers=3) as pool:
+        running = pool.submit(run_chains, [functools.partial(chain, n) for n in ("a", "b")])
+        deadline = study_steps.time.monotonic() + 10
+        while not step.running and study_steps.time.monotonic() < deadline:
+            study_steps.time.sleep(0.01)
+        with step.lock:
+            seen.append((step.done, dict(step.done_by_kind), len(step.running)))
+        running.result()
+    assert seen == [(0, {}, 1)]
+    assert step.done == 2 and step.done_by_kind == {"step": 2} and step.running == {}
