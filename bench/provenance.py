@@ -1,13 +1,12 @@
 """Where a benchmark's or a study's numbers came from: the date, the machine, the code and the
 versions of the libraries that compute them.
 
-Why: the study's demonstrations and trainings are bit-reproducible within one install (two
-runs of the same demonstrations and of the same imitation give identical episodes and weights,
-measured 2026-11-27), yet the same σ 0 pool held 19,710 frames in the one-command study of
-2026-11-26 and 19,815 on 2026-11-27 with no commit to carrt/ or training/ between them: each
-session installs its own venv, and the dependencies (numpy, OpenCV, …) are not pinned (the
-likely cause; the earlier venv's versions were not recorded, so not measured). A results file
-that names what computed it lets two runs be told apart by more than their dates.
+Why: two runs of the same study on the same seeds disagreed by more than the seeds of one run
+(the σ 0 pool held 19,710 frames in one and 19,815 in another). The cause, measured 2026-11-27,
+was steps the recorder dropped under load, not the libraries (the same install, recording again
+on an idle machine, gave 239 of 240 episodes byte-identical); fixed in carrt/episodes/writer.py.
+Library versions can still differ between installs; a results file that names what computed it
+lets two runs be told apart by more than their dates.
 """
 
 from __future__ import annotations

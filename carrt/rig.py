@@ -33,6 +33,8 @@ class Rig:
     follows_mode: list = field(default_factory=list)  # things that need the loop's mode
     watches_loop: list = field(default_factory=list)  # shown the loop's LiveStatus (a window)
     finish: Callable[[Any], None] | None = None  # with the loop summary (the sim's metrics)
+    # the simulator's own clock, faster than real time: the loop may wait for the disk there
+    simulated_time: bool = False
 
 
 def open_car_rig(stack: contextlib.ExitStack, config: Any) -> Rig:

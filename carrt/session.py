@@ -217,6 +217,8 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
                 config.episodes.dir,
                 queue_steps=config.episodes.queue_steps,
                 sync_every_s=config.episodes.sync_every_s,
+                # faster than real time a dropped step is lost data for nothing: wait instead
+                wait_when_full=rig.simulated_time,
             )
             stack.callback(sink.close)
         parts = LoopParts(

@@ -254,6 +254,47 @@ def test_stalled_disk_drops_and_counts_instead_of_blocking(tmp_path, monkeypatch
         assert_step_matches(record, frame, step)
 
 
+def test_writer_on_simulated_time_waits_for_a_stalled_disk_and_keeps_every_step(
+    tmp_path, monkeypatch
+):
+    """Faster than real time a dropped step is training data lost (and lost differently from run
+    to run): the simulator's writer waits for room instead."""
+    release = threading.Event()
+    real_write = writer_mod._write_all
+
+    def stalled_write(fd, data):
+        release.wait(10)
+        real_write(fd, data)
+
+    monkeypatch.setattr(writer_mod, "_write_all", stalled_write)
+    threading.Timer(0.3, release.set).start()  # the disk comes back after 0.3 s
+    writer = EpisodeWriter(tmp_path, queue_steps=8, wait_when_full=True)
+    writer.begin(metadata())
+    steps = [make_step(i) for i in range(200)]
+    start = time.perf_counter()
+    accepted = [writer.write(step) for step in steps]
+    waited = time.perf_counter() - start
+    writer.end("stopped")
+    writer.close()
+    assert all(accepted) and writer.dropped == 0
+    assert waited >= 0.2, f"write() returned in {waited:.2f} s while the disk was stalled"
+    ep = read_episode(writer.last_episode_path)
+    assert ep.n == len(steps) and ep.meta["counts"]["dropped"] == 0
+    for record, frame, step in zip(ep.steps, ep.frames, steps, strict=True):
+        assert_step_matches(record, frame, step)
+
+
+def test_waiting_writer_whose_thread_died_drops_instead_of_hanging(tmp_path):
+    writer = EpisodeWriter(tmp_path, queue_steps=2, wait_when_full=True)
+    writer.begin(metadata())
+    writer._put(("stop",))  # the thread ends, as if it had died
+    writer._thread.join(5)
+    start = time.perf_counter()
+    accepted = [writer.write(make_step(i)) for i in range(5)]
+    assert accepted == [True, True, False, False, False] and writer.dropped == 3
+    assert time.perf_counter() - start < 5
+
+
 # ----------------------------------------------------------------------------- collision labels
 def _steps(t, mode=Mode.MANUAL, estop=None, collision=None):
     arr = np.zeros(len(t), dtype=STEP_DTYPE)

@@ -183,6 +183,7 @@ def open_sim_rig(
         follows_mode=[x for x in (pilot, tracker) if x is not None],
         watches_loop=[joystick] if hasattr(joystick, "status_source") else [],
         finish=lambda summary: _finish(sim, world, tracker, summary),
+        simulated_time=not realtime,
     )
 
 
