@@ -21,7 +21,7 @@ import numpy as np
 from bench.dirl_sim import StudyConfig, usable_cores
 from bench.dirl_steps import ROOT, every_noise_demonstrations
 from bench.dirl_table import cell
-from bench.provenance import environment
+from bench.provenance import environment, recorded
 from bench.study_steps import StudyStep, finished_steps, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
@@ -145,7 +145,8 @@ def write_results(cfg, rows: list[dict], started: float, name: str,
         for mine in [[r for r in rows if r["demo_noise"] == sigma]]
     )
     results = {"config": dataclasses.asdict(cfg), "rows": rows,
-               "wall_s": time.monotonic() - started, "environment": environment()}  # fmt: skip
+               "wall_s": time.monotonic() - started, "environment": environment(),
+               "recorded": recorded(Path(cfg.out) / "data")}  # fmt: skip
     out = Path(cfg.out)
     (out / f"results{name}.json").write_text(json.dumps(results, indent=1) + "\n")
     (out / f"table{name}.md").write_text(text + "\n")

@@ -83,7 +83,7 @@ from bench.dirl_table import (
     plot,
     table,
 )
-from bench.provenance import environment
+from bench.provenance import environment, recorded
 from bench.study_steps import StudyStep, finished_steps, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
@@ -394,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
         report += f"\n\nNot finished yet (--report): {', '.join(missing)}."
     results = {"config": dataclasses.asdict(cfg), "rows": rows, "complete": not missing,
                "not_finished": missing, "wall_s": time.monotonic() - started,
-               "environment": environment()}  # fmt: skip
+               "environment": environment(), "recorded": recorded(out / "data")}  # fmt: skip
     (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     (out / "table.md").write_text(report + "\n")
     plot(rows, out / "completion_vs_frames.png")
