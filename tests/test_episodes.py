@@ -220,7 +220,9 @@ def test_cannot_create_episode_reports_error_without_raising(tmp_path):
         assert writer.dropped == 1 and not writer.recording
 
 
-def test_stalled_disk_drops_and_counts_instead_of_blocking(tmp_path, monkeypatch):
+@pytest.fixture
+def stalled_disk(monkeypatch) -> threading.Event:
+    """Every write to the episode files waits (up to 10 s) until the returned event is set."""
     release = threading.Event()
     real_write = writer_mod._write_all
 
@@ -229,6 +231,11 @@ def test_stalled_disk_drops_and_counts_instead_of_blocking(tmp_path, monkeypatch
         real_write(fd, data)
 
     monkeypatch.setattr(writer_mod, "_write_all", stalled_write)
+    return release
+
+
+def test_stalled_disk_drops_and_counts_instead_of_blocking(tmp_path, stalled_disk):
+    release = stalled_disk
     queue = 8
     writer = EpisodeWriter(tmp_path, queue_steps=queue)
     writer.begin(metadata())
@@ -255,19 +262,11 @@ def test_stalled_disk_drops_and_counts_instead_of_blocking(tmp_path, monkeypatch
 
 
 def test_writer_on_simulated_time_waits_for_a_stalled_disk_and_keeps_every_step(
-    tmp_path, monkeypatch
+    tmp_path, stalled_disk
 ):
     """Faster than real time a dropped step is training data lost (and lost differently from run
     to run): the simulator's writer waits for room instead."""
-    release = threading.Event()
-    real_write = writer_mod._write_all
-
-    def stalled_write(fd, data):
-        release.wait(10)
-        real_write(fd, data)
-
-    monkeypatch.setattr(writer_mod, "_write_all", stalled_write)
-    threading.Timer(0.3, release.set).start()  # the disk comes back after 0.3 s
+    threading.Timer(0.3, stalled_disk.set).start()  # the disk comes back after 0.3 s
     writer = EpisodeWriter(tmp_path, queue_steps=8, wait_when_full=True)
     writer.begin(metadata())
     steps = [make_step(i) for i in range(200)]
