@@ -144,10 +144,10 @@ def write_results(cfg, rows: list[dict], started: float, name: str,
         for sigma in cfg.demo_noise
         for mine in [[r for r in rows if r["demo_noise"] == sigma]]
     )
+    out = Path(cfg.out)
     results = {"config": dataclasses.asdict(cfg), "rows": rows,
                "wall_s": time.monotonic() - started, "environment": environment(),
-               "recorded": recorded(Path(cfg.out) / "data")}  # fmt: skip
-    out = Path(cfg.out)
+               "recorded": recorded(out / "data")}  # fmt: skip
     (out / f"results{name}.json").write_text(json.dumps(results, indent=1) + "\n")
     (out / f"table{name}.md").write_text(text + "\n")
     return text
