@@ -160,6 +160,8 @@ def study_for(p: argparse.ArgumentParser, cfg) -> StudyConfig:
         p.error(f"parallel: {cfg.parallel} (1 or more)")
     if any(not 0 <= s < 10 for s in cfg.demo_noise) or not cfg.demo_noise:
         p.error(f"demo_noise: {cfg.demo_noise} (one or more σ in [0, 10))")
+    if cfg.study.demo_noise_tau < 0:
+        p.error(f"study.demo_noise_tau: {cfg.study.demo_noise_tau} (seconds, 0 or more)")
     cores = usable_cores()
     return dataclasses.replace(cfg.study, out=cfg.out, seeds=cfg.seeds,
                                demo_noise=cfg.demo_noise, parallel=cfg.parallel,

@@ -116,6 +116,10 @@ class StudyConfig:
     counterfactual_starts: int = 6  # start states per counterfactual placement
     expert_episodes: int = 6  # per training placement, one lap each from a random place
     demo_noise: tuple[float, ...] = (0.0, 0.5, 1.0)  # σ on the expert's commands (robustness)
+    # how long the imperfect person's error lasts (s; carrt.sim.pilot): 0, a fresh error every
+    # command (the paper's words; measured, it made imitation better, as DART's noise does);
+    # 0.5, an error that lasts about as long as a person takes to notice and correct it
+    demo_noise_tau: float = 0.0
     iterations: int = 3  # DIRL iterations (σ = 0)
     robustness_iterations: int = 1  # DIRL iterations for σ > 0
     drive_seconds: float = 40.0  # simulated s per placement per DIRL iteration
@@ -363,6 +367,8 @@ def parse(argv: list[str] | None) -> StudyConfig:
         p.error(f"threads {cfg.threads}, jobs {cfg.jobs}: 0 (every core) or more")
     if cfg.parallel < 1:
         p.error(f"parallel: {cfg.parallel} (1 or more)")
+    if cfg.demo_noise_tau < 0:
+        p.error(f"demo_noise_tau: {cfg.demo_noise_tau} (seconds, 0 or more)")
     if len(cfg.select_tracks) != 1 and len(cfg.select_tracks) < longest:
         p.error(f"select_tracks: {len(cfg.select_tracks)} entries for {longest} iterations")
     return dataclasses.replace(cfg, report_only=a.report)

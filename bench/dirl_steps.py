@@ -140,7 +140,8 @@ def demonstrations(cfg: StudyConfig, step: StudyStep, sigma: float, tracks: str,
     data = Path(cfg.out) / "data" / f"{tag}-noise{sigma:g}"
     step(f"{tag}-noise{sigma:g}", py("-m", "training.sim_data", "demos", "--out", str(data),
          "--tracks", tracks, "--layouts", cfg.layout, "--episodes", str(cfg.expert_episodes),
-         "--noise", str(sigma), "--jobs", str(cfg.all_jobs())), data / ".done")  # fmt: skip
+         "--noise", str(sigma), "--noise-tau", str(cfg.demo_noise_tau),
+         "--jobs", str(cfg.all_jobs())), data / ".done")  # fmt: skip
     return data
 
 
@@ -248,7 +249,8 @@ def takeover_drives(cfg: StudyConfig, step: StudyStep, tag: str, sigma: float, k
     step(f"takeovers-{tag}-{label}", py("-m", "training.sim_data", "interventions",
          "--model", model, "--out", str(takeovers), "--tracks", iteration_tracks(cfg, k),
          "--layouts", cfg.layout, "--seconds", str(seconds), "--noise", str(sigma),
-         "--jobs", str(cfg.step_jobs()), *drive_seeds(k)), takeovers / ".done")  # fmt: skip
+         "--noise-tau", str(cfg.demo_noise_tau), "--jobs", str(cfg.step_jobs()),
+         *drive_seeds(k)), takeovers / ".done")  # fmt: skip
     return takeovers
 
 

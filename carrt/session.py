@@ -78,6 +78,14 @@ def _expert_noise_argument(parser: argparse.ArgumentParser, when: str) -> None:
         help=f"{when}, add Gaussian noise of this σ to every expert command (the paper's "
         "imperfect demonstrations: 0.5, 1.0)",
     )
+    parser.add_argument(
+        "--expert-noise-tau",
+        type=finite_non_negative,
+        default=0.0,
+        metavar="SECONDS",
+        help="how long the expert's error lasts (an Ornstein-Uhlenbeck process, the same σ per "
+        "command); 0 (default): a fresh error every command",
+    )
 
 
 def _common_arguments(parser: argparse.ArgumentParser) -> None:

@@ -2,7 +2,8 @@
 
 Values are read by the field's declared type: int, float, str, bool (true/false, yes/no, on/off,
 1/0), an optional field's `none`, and tuples as comma-separated lists. An unknown field, or a
-value that is not of the field's type, is a UserError that names it (one line, exit 2), with a
+value that is not of the field's type (NaN and infinities are not floats here: no setting
+means them), is a UserError that names it (one line, exit 2), with a
 did-you-mean for a near miss. (The car's TOML config has its own typed keys: carrt/config.py.)
 """
 
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 from typing import Any
 
 from carrt.errors import UserError
@@ -32,7 +34,10 @@ def parse_value(kind: str, text: str) -> Any:
     if kind.startswith("int"):
         return int(text)
     if kind.startswith("float"):
-        return float(text)
+        value = float(text)
+        if not math.isfinite(value):
+            raise ValueError(text)
+        return value
     return text
 
 

@@ -376,7 +376,9 @@ def test_each_round_is_paired_with_imitation_at_its_frames():
      ("study.out=x", "the check's own"), ("study.profil=paper", "did you mean profile"),
      ("study.imitation_steps=many", "imitation_steps=many"),
      ("robustness_rounds=-1", "robustness_rounds: -1"),
-     ("robustness_rounds=4", "robustness_rounds: 4")],
+     ("robustness_rounds=4", "robustness_rounds: 4"),
+     ("study.demo_noise_tau=-0.5", "study.demo_noise_tau: -0.5"),
+     ("study.demo_noise_tau=nan", "not a valid float")],
 )  # fmt: skip
 def test_a_bad_setting_is_refused_in_one_line(capsys, setting, says):
     with pytest.raises(SystemExit) as stop:
@@ -449,6 +451,28 @@ def test_study_settings_are_set_through_the_check_and_reach_its_commands(monkeyp
                      "--set", "study.imitation_steps=50")  # fmt: skip
     il = argv["train-noise0-seed0-il"]
     assert il[il.index("--profile") + 1] == "paper" and "imitation_steps=50" in il
+
+
+def _recording_into(commands: list[list[str]]):
+    """A step function that records each command instead of running it."""
+    return lambda name, argv, marker: commands.append(argv)
+
+
+def test_a_lasting_demonstrator_error_reaches_the_demonstrations_and_every_take_over(
+    monkeypatch, tmp_path
+):
+    """study.demo_noise_tau: the imperfect person's error lasts that long in the demonstrations
+    (both pools) and in each round's take-overs, the same person throughout; 0 by default."""
+    for tau, sets in (("0.0", ()), ("0.5", ("--set", "study.demo_noise_tau=0.5"))):
+        argv, _ = _chain(monkeypatch, tmp_path, "--set", "demo_noise=1.0", *sets, sigma=1.0)
+        cfg = takeover_check.parse(["--set", f"out={tmp_path}", "--set", "demo_noise=1.0", *sets])
+        demos: list[list[str]] = []
+        check_steps.every_noise_demonstrations(cfg.study, _recording_into(demos), extra=True)
+        commands = [*demos, argv["takeovers-noise1-seed0-rounds1"],
+                    argv["takeovers-noise1-seed0-rounds2"]]  # fmt: skip
+        assert len(commands) == 4
+        for a in commands:
+            assert a[a.index("--noise") + 1] == "1.0" and a[a.index("--noise-tau") + 1] == tau
 
 
 def test_robustness_rounds_give_the_noisy_chains_their_own_rounds_and_il_at_the_last(

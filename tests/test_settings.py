@@ -30,7 +30,9 @@ def test_values_are_read_by_the_fields_type():
 @pytest.mark.parametrize(
     "item, message",
     [("stesp=3", "unknown field (did you mean steps?) (see Demo)"), ("steps=many", "not a valid"),
-     ("on=maybe", "not a valid"), ("steps", "expected field=value")],
+     ("on=maybe", "not a valid"), ("steps", "expected field=value"),
+     ("lr=nan", "lr=nan: not a valid float"), ("lr=inf", "not a valid float"),
+     ("noise=0.5,-inf", "not a valid tuple")],
 )  # fmt: skip
 def test_bad_settings_are_one_line_user_errors(item, message):
     with pytest.raises(UserError, match=None) as info:

@@ -34,6 +34,22 @@ def test_demos_record_each_placement_once_on_both_layouts(tmp_path):
     assert len(list_episodes([str(out)])) == 2
 
 
+def test_a_lasting_error_reaches_the_recorded_demonstrations(tmp_path):
+    """`demos --noise-tau τ`: through `carrt teleop` and the rig to the simulated person, and
+    into the labels: with a lasting error the recorded a* changes far less from one step to the
+    next than with a fresh error each step, at the same σ."""
+    jumps = {}
+    for tau in ("0", "0.5"):
+        out = tmp_path / f"tau{tau}"
+        argv = ["demos", "--out", str(out), "--tracks", "1000", "--layouts", "hard",
+                "--episodes", "2", "--noise", "0.5", "--noise-tau", tau, "--jobs", "1"]  # fmt: skip
+        assert sim_data.main(argv) == 0
+        steering = [read_episode(p).steps["human_action"][:, 0] for p in list_episodes([str(out)])]
+        jumps[tau] = float(np.concatenate([np.diff(s) for s in steering]).std())
+    # fresh: std of a* differences ≈ σ·√2 (0.7), a lasting one ≈ σ·√(2(1 − e^(−0.2))) (0.3)
+    assert jumps["0.5"] < 0.6 * jumps["0"], jumps
+
+
 def test_interventions_need_a_model(tmp_path, capsys):
     argv = ["interventions", "--out", str(tmp_path), "--model", str(tmp_path / "none.onnx")]
     assert sim_data.main(argv) == 2
@@ -53,6 +69,10 @@ def test_a_noise_that_is_not_a_finite_sigma_is_refused_by_name(tmp_path, capsys,
     assert exit_.value.code == 2
     assert "argument --noise: expected a finite number >= 0" in capsys.readouterr().err
     assert not (tmp_path / "out").exists(), "nothing recorded"
+    with pytest.raises(SystemExit) as exit_:
+        sim_data.main([what, "--out", str(tmp_path / "out"), "--noise-tau", sigma, *extra])
+    assert exit_.value.code == 2
+    assert "argument --noise-tau: expected a finite number >= 0" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("what", ["drives", "interventions"])
@@ -78,11 +98,12 @@ def test_take_overs_carry_the_demonstrators_noise_to_every_placement(tmp_path):
 
     model = tmp_path / "p.onnx"
     jobs = sim_data.drive_jobs(tmp_path, model, [1000, 1001], ["hard"], 8.0, intervene=True,
-                               noise=0.5)  # fmt: skip
+                               noise=0.5, noise_tau=0.25)  # fmt: skip
     for job in jobs:
         assert job.argv[job.argv.index("--expert-noise") + 1] == "0.5"
         args = build_parser().parse_args(list(job.argv))
         assert args.expert_noise == 0.5 and args.expert_intervene
+        assert args.expert_noise_tau == 0.25, "the same lasting error as the demonstrations"
     later = sim_data.drive_jobs(tmp_path, model, [1000], ["hard"], 8.0, intervene=True,
                                 seed_offset=100_000)  # fmt: skip
     argv = later[0].argv

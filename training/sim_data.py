@@ -70,14 +70,20 @@ def layout_for(index: int, layouts: list[str]) -> str:
 
 
 def demo_jobs(
-    out: Path, tracks: list[int], layouts: list[str], episodes: int, noise: float = 0.0
+    out: Path,
+    tracks: list[int],
+    layouts: list[str],
+    episodes: int,
+    noise: float = 0.0,
+    noise_tau: float = 0.0,
 ) -> list[Job]:
-    """noise: σ of Gaussian noise on every expert command (the paper's imperfect demonstrator)."""
+    """noise: σ of Gaussian noise on every expert command (the paper's imperfect demonstrator);
+    noise_tau: how long its error lasts (s; 0: fresh every command)."""
     jobs = []
     for i, track in enumerate(tracks):
         layout = layout_for(i, layouts)
         argv = ("teleop", "--sim", "--expert", "auto", "--record", "--random-start",
-                "--expert-noise", str(noise),
+                "--expert-noise", str(noise), "--expert-noise-tau", str(noise_tau),
                 "--seed", str(track), "--layout", layout, "--track-seed", str(track),
                 "--episodes", str(episodes), "--laps", "1", "--out", str(out),
                 "--duration", "100000")  # fmt: skip
@@ -96,6 +102,7 @@ def drive_jobs(
     explore: bool = False,
     sets: tuple[str, ...] = (),
     noise: float = 0.0,
+    noise_tau: float = 0.0,
     seed_offset: int = 0,
 ) -> list[Job]:
     """The policy drives each placement; with `intervene` the expert takes over before a crash,
@@ -103,11 +110,13 @@ def drive_jobs(
     `explore`: the loop's noise injection perturbs the policy's commands too (noise.during_auto),
     so the crashes and near misses come from varied actions, not only the policy's own.
     `sets`: `carrt drive --set` overrides for every placement (noise.amplitude=0.8, …).
-    `noise`: σ on the expert's take-over commands (the robustness setting's imperfect person).
+    `noise`: σ on the expert's take-over commands (the robustness setting's imperfect person),
+    `noise_tau`: how long its error lasts.
     `seed_offset`: added to each placement's simulator seed (noise, starts, camera phase), so a
     later iteration whose policy is unchanged still drives new episodes, not the same ones."""
     jobs = []
-    take_over = ("--expert-intervene", "--expert-noise", str(noise)) if intervene else ()
+    person = ("--expert-noise", str(noise), "--expert-noise-tau", str(noise_tau))
+    take_over = ("--expert-intervene", *person) if intervene else ()
     take_over += ("--set", "noise.during_auto=true") if explore else ()
     take_over += tuple(arg for item in sets for arg in ("--set", item))
     for i, track in enumerate(tracks):
@@ -192,6 +201,10 @@ def main(argv: list[str] | None = None) -> int:
         if name in ("demos", "interventions"):  # the expert drives: its commands get σ
             who = "the expert's commands" if name == "demos" else "the take-overs"
             p.add_argument("--noise", type=finite_non_negative, default=0.0, help=f"σ on {who}")
+            p.add_argument(
+                "--noise-tau", type=finite_non_negative, default=0.0, metavar="SECONDS",
+                help="how long that error lasts (0: fresh every command)",
+            )  # fmt: skip
         if name == "drives":
             p.add_argument(
                 "--explore", action="store_true",
@@ -207,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
         tracks = parse_tracks(args.tracks)
         layouts = [x.strip() for x in args.layouts.split(",") if x.strip()]
         if args.what == "demos":
-            jobs = demo_jobs(out, tracks, layouts, args.episodes, args.noise)
+            jobs = demo_jobs(out, tracks, layouts, args.episodes, args.noise, args.noise_tau)
         else:
             if not Path(args.model).is_file():
                 raise UserError(f"no such model: {args.model}")
@@ -215,7 +228,8 @@ def main(argv: list[str] | None = None) -> int:
             jobs = drive_jobs(
                 out, Path(args.model), tracks, layouts, args.seconds, intervene=intervene,
                 explore=getattr(args, "explore", False), sets=tuple(getattr(args, "sets", ())),
-                noise=getattr(args, "noise", 0.0), seed_offset=args.seed_offset,
+                noise=getattr(args, "noise", 0.0), noise_tau=getattr(args, "noise_tau", 0.0),
+                seed_offset=args.seed_offset,
             )  # fmt: skip
         out.mkdir(parents=True, exist_ok=True)
         run_jobs(jobs, max(1, args.jobs), args.what)

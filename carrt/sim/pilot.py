@@ -16,6 +16,7 @@ to AUTO. The policy thus gets labels in states it reached itself.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
@@ -50,6 +51,7 @@ class SimPilot:
         laps_per_episode: int | None = None,
         random_start: bool = False,
         expert_noise: float = 0.0,
+        expert_noise_tau: float = 0.0,
         seed: int = 0,
         intervene: bool = False,
     ) -> None:
@@ -68,6 +70,9 @@ class SimPilot:
         self._pick_up = False
         self.random_start = random_start
         self.expert_noise = float(expert_noise)
+        self.expert_noise_tau = float(expert_noise_tau)
+        self._error = np.zeros(2)  # the person's error now (steering, throttle)
+        self._error_at: float | None = None  # when it was last drawn
         self._rng = np.random.default_rng(seed)
         self._placed = False
         self.intervene = intervene and expert is not None
@@ -118,8 +123,26 @@ class SimPilot:
         and which the episode keeps apart from a*), this noise IS the demonstration."""
         if self.expert_noise <= 0:
             return sticks
-        noisy = np.clip(np.asarray(sticks) + self._rng.normal(0.0, self.expert_noise, 2), -1, 1)
+        noisy = np.clip(np.asarray(sticks) + self._person_error(), -1, 1)
         return float(noisy[0]), float(noisy[1])
+
+    def _person_error(self) -> np.ndarray:
+        """The error on this command: σ expert_noise on each stick. With expert_noise_tau = 0 a
+        fresh draw every command (the literal reading of the paper; measured, that shows the
+        policy recoveries and made imitation better, as DART's noise does). With τ > 0 the error
+        lasts the way a person's does: an Ornstein-Uhlenbeck process of time constant τ, the
+        same σ per command, correlated exp(−Δt/τ) with the last one. A lasting error is what
+        makes a demonstration imperfect: at a state it put off the line the label still carries
+        it, so imitation learns to under-correct. After a gap (between take-overs) it is fresh."""
+        fresh = self._rng.normal(0.0, self.expert_noise, 2)
+        now = self.clock.now()
+        if self.expert_noise_tau <= 0 or self._error_at is None:
+            self._error = fresh
+        else:
+            kept = math.exp(-max(0.0, now - self._error_at) / self.expert_noise_tau)
+            self._error = kept * self._error + math.sqrt(1.0 - kept * kept) * fresh
+        self._error_at = now
+        return self._error
 
     def _safety_driver(self, mode: Mode, now: float, state) -> tuple[float, float]:
         """The expert's sticks while taking over from the policy, else centred sticks."""

@@ -76,6 +76,7 @@ class SimRigConfig:
     pad: bool = False  # a joystick instead of the keyboard window
     expert_intervene: bool = False
     expert_noise: float = 0.0
+    expert_noise_tau: float = 0.0  # s the expert's error lasts (SimPilot._person_error)
     random_start: bool = False
     episodes: int | None = None
     laps: int | None = None
@@ -154,6 +155,7 @@ def open_sim_rig(
             laps_per_episode=sim.laps if sim.laps or not sim.episodes else 1,
             random_start=sim.random_start,
             expert_noise=sim.expert_noise,
+            expert_noise_tau=sim.expert_noise_tau,
             seed=sim.seed,
             intervene=intervene,
         )
