@@ -3,6 +3,8 @@ never on the evaluation placements."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -48,6 +50,30 @@ def test_a_lasting_error_reaches_the_recorded_demonstrations(tmp_path):
         jumps[tau] = float(np.concatenate([np.diff(s) for s in steering]).std())
     # fresh: std of a* differences ≈ σ·√2 (0.7), a lasting one ≈ σ·√(2(1 − e^(−0.2))) (0.3)
     assert jumps["0.5"] < 0.6 * jumps["0"], jumps
+
+
+def test_an_out_recorded_by_another_person_is_refused_not_mixed(tmp_path, capsys):
+    """Finished placements are skipped on resume, so an OUT recorded with another --noise or
+    --noise-tau must be refused (one line, exit 2) rather than topped up by another person."""
+    out = tmp_path / "expert"
+    out.mkdir()
+    (out / ".done-1000").write_text("")  # a finished placement, recorded before --noise-tau
+    argv = ["demos", "--out", str(out), "--tracks", "1000-1001", "--noise", "0.5"]
+    assert sim_data.main([*argv, "--noise-tau", "0.5"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "recorded with --noise 0.5 --noise-tau 0, not 0.5 and 0.5: use another --out" in err
+    assert len(err.splitlines()) == 1
+    assert not list(out.iterdir())[1:], "placement 1001 was not recorded"
+    sim_data.same_person(out, 0.5, 0.0)  # the same person: accepted, and now written down
+    assert json.loads((out / sim_data.PERSON).read_text()) == {"noise": 0.5, "noise_tau": 0.0}
+    with pytest.raises(UserError, match="not 1 and 0"):
+        sim_data.same_person(out, 1.0, 0.0)
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    sim_data.same_person(fresh, 1.0, 0.5)
+    sim_data.same_person(fresh, 1.0, 0.5)
+    with pytest.raises(UserError, match=r"--noise-tau 0\.5, not 1 and 0:"):
+        sim_data.same_person(fresh, 1.0, 0.0)
 
 
 def test_interventions_need_a_model(tmp_path, capsys):

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
+import json
 import sys
 from concurrent.futures import as_completed
 from dataclasses import dataclass
@@ -127,6 +128,32 @@ def drive_jobs(
                 "--out", str(out), "--duration", str(seconds))  # fmt: skip
         jobs.append(Job(argv, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}"))
     return jobs
+
+
+PERSON = "person.json"  # in OUT: the simulated person's noise its placements were recorded with
+
+
+def same_person(out: Path, noise: float, noise_tau: float) -> None:
+    """Refuse to resume OUT with another person: finished placements are skipped on resume, so
+    a different --noise or --noise-tau would mix two demonstrators' recordings under one name.
+    OUT/person.json says who recorded it; an OUT with finished placements and no person.json
+    was recorded before --noise-tau existed (τ 0), with a σ it does not say (not checked)."""
+    path = out / PERSON
+    mine = {"noise": noise, "noise_tau": noise_tau}
+    if path.is_file():
+        theirs = json.loads(path.read_text())
+    elif any(out.glob(".done-*")):
+        theirs = {"noise": noise, "noise_tau": 0.0}
+    else:
+        path.write_text(json.dumps(mine) + "\n")
+        return
+    if theirs != mine:
+        raise UserError(
+            f"{out} was recorded with --noise {theirs['noise']:g} --noise-tau "
+            f"{theirs['noise_tau']:g}, not {noise:g} and {noise_tau:g}: use another --out"
+        )
+    if not path.is_file():
+        path.write_text(json.dumps(mine) + "\n")
 
 
 def _run_job(job: Job) -> tuple[Job, int]:
@@ -232,6 +259,8 @@ def main(argv: list[str] | None = None) -> int:
                 seed_offset=args.seed_offset,
             )  # fmt: skip
         out.mkdir(parents=True, exist_ok=True)
+        if args.what in ("demos", "interventions"):
+            same_person(out, args.noise, args.noise_tau)
         run_jobs(jobs, max(1, args.jobs), args.what)
         print(f"{out}: {count_frames(out):,} frames")
     except UserError as exc:
