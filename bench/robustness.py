@@ -135,10 +135,11 @@ def main(argv: list[str] | None = None) -> int:
     text = table(result)
     print(text)
     if a.json:
-        files = {"clean": a.clean, "noisy": a.noisy}
-        record = {"files": files, "placements": placements(noisy), "result": result,
-                  "table": text, "environment": environment(),
-                  "sources": {k: load(v).get("environment") for k, v in files.items()}}  # fmt: skip
+        record = {"files": {"clean": a.clean, "noisy": a.noisy},
+                  "placements": placements(noisy), "result": result, "table": text,
+                  "environment": environment(),
+                  "sources": {"clean": clean.get("environment"),
+                              "noisy": noisy.get("environment")}}  # fmt: skip
         Path(a.json).write_text(json.dumps(record, indent=1) + "\n")
     return 0
 

@@ -35,6 +35,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from carrt.arg_types import finite_non_negative, finite_positive
+from carrt.episodes.format import write_json_atomic
 from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import EXIT_USAGE, UserError
 from carrt.eval_cmd import parse_int_list
@@ -142,18 +143,14 @@ def same_person(out: Path, noise: float, noise_tau: float) -> None:
     mine = {"noise": noise, "noise_tau": noise_tau}
     if path.is_file():
         theirs = json.loads(path.read_text())
-    elif any(out.glob(".done-*")):
-        theirs = {"noise": noise, "noise_tau": 0.0}
     else:
-        path.write_text(json.dumps(mine) + "\n")
-        return
+        theirs = {"noise": noise, "noise_tau": 0.0} if any(out.glob(".done-*")) else mine
     if theirs != mine:
         raise UserError(
             f"{out} was recorded with --noise {theirs['noise']:g} --noise-tau "
             f"{theirs['noise_tau']:g}, not {noise:g} and {noise_tau:g}: use another --out"
         )
-    if not path.is_file():
-        path.write_text(json.dumps(mine) + "\n")
+    write_json_atomic(path, mine)  # a kill mid-write leaves the old file or none, never half
 
 
 def _run_job(job: Job) -> tuple[Job, int]:
