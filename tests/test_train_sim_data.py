@@ -74,6 +74,9 @@ def test_an_out_recorded_by_another_person_is_refused_not_mixed(tmp_path, capsys
     sim_data.same_person(fresh, 1.0, 0.5)
     with pytest.raises(UserError, match=r"--noise-tau 0\.5, not 1 and 0:"):
         sim_data.same_person(fresh, 1.0, 0.0)
+    (fresh / sim_data.PERSON).write_text('{"noise": 1.0')  # edited by hand, say
+    with pytest.raises(UserError, match=r"person\.json: not a person record"):
+        sim_data.same_person(fresh, 1.0, 0.5)
 
 
 def test_interventions_need_a_model(tmp_path, capsys):

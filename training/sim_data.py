@@ -142,7 +142,11 @@ def same_person(out: Path, noise: float, noise_tau: float) -> None:
     path = out / PERSON
     mine = {"noise": noise, "noise_tau": noise_tau}
     if path.is_file():
-        theirs = json.loads(path.read_text())
+        try:
+            theirs = json.loads(path.read_text())
+            theirs = {"noise": float(theirs["noise"]), "noise_tau": float(theirs["noise_tau"])}
+        except (ValueError, KeyError, TypeError):
+            raise UserError(f"{path}: not a person record (noise, noise_tau)") from None
     else:
         theirs = {"noise": noise, "noise_tau": 0.0} if any(out.glob(".done-*")) else mine
     if theirs != mine:
