@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.dirl_sim import StudyConfig, usable_cores
 from bench.dirl_steps import ROOT, every_noise_demonstrations
 from bench.dirl_table import cell
 from bench.provenance import environment, recorded
+from bench.study_config import StudyConfig, range_problems, usable_cores
 from bench.study_steps import StudyStep, finished_steps, run_chains
 from carrt.errors import UserError
 from carrt.settings import apply_sets
@@ -105,13 +105,13 @@ def read_sets(argv: list[str] | None, cfg, module: str, doc: str, name: str):
     where = f"{name} in {module.replace('.', '/')}.py"
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help=f"a {where} field, or study.FIELD for a StudyConfig one in "
-                   "bench/dirl_sim.py; tuples comma-separated")  # fmt: skip
+                   "bench/study_config.py; tuples comma-separated")  # fmt: skip
     items = p.parse_args(argv).set
     study = [item.removeprefix("study.") for item in items if item.startswith("study.")]
     own = [item for item in items if not item.startswith("study.")]
     try:
         cfg = apply_sets(cfg, own, where)
-        where = f"StudyConfig in bench/dirl_sim.py; {', '.join(CHECK_OWNS)} are the check's own"
+        where = f"StudyConfig in bench/study_config.py; {', '.join(CHECK_OWNS)} are the check's own"
         studied = apply_sets(cfg.study, study, where, frozen=CHECK_OWNS)
         return p, dataclasses.replace(cfg, study=studied)
     except UserError as exc:
@@ -156,13 +156,11 @@ def write_results(cfg, rows: list[dict], started: float, name: str,
 def study_for(p: argparse.ArgumentParser, cfg) -> StudyConfig:
     """The study's settings with a check's out, seeds, σs, placements and parallelism (every
     core shared between its steps); a bad one ends in one line through `p`."""
-    if cfg.parallel < 1:
-        p.error(f"parallel: {cfg.parallel} (1 or more)")
-    if any(not 0 <= s < 10 for s in cfg.demo_noise) or not cfg.demo_noise:
-        p.error(f"demo_noise: {cfg.demo_noise} (one or more σ in [0, 10))")
-    if cfg.study.demo_noise_tau < 0:
-        p.error(f"study.demo_noise_tau: {cfg.study.demo_noise_tau} (seconds, 0 or more)")
     cores = usable_cores()
-    return dataclasses.replace(cfg.study, out=cfg.out, seeds=cfg.seeds,
-                               demo_noise=cfg.demo_noise, parallel=cfg.parallel,
-                               threads=cores, jobs=cores, eval_tracks=cfg.eval_tracks)  # fmt: skip
+    study = dataclasses.replace(cfg.study, out=cfg.out, seeds=cfg.seeds,
+                                demo_noise=cfg.demo_noise, parallel=cfg.parallel,
+                                threads=cores, jobs=cores, eval_tracks=cfg.eval_tracks)  # fmt: skip
+    own = {"demo_noise", "parallel"}  # the check's own fields; the rest are set as study.FIELD
+    for problem in range_problems(study, lambda f: f if f in own else f"study.{f}"):
+        p.error(problem)
+    return study

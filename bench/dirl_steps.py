@@ -10,13 +10,10 @@ import shutil
 import sys
 from collections import Counter
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from bench.dirl_table import SEARCH_ROW
+from bench.study_config import StudyConfig
 from bench.study_steps import NotRun, StudyStep, output_of
-
-if TYPE_CHECKING:
-    from bench.dirl_sim import StudyConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 DRIVE_SEED_STRIDE = 100_000  # iteration k drives with simulator seeds placement + stride·(k−1)

@@ -50,7 +50,6 @@ from bench.check_steps import (
     write_results,
 )
 from bench.check_steps import report as paired_report
-from bench.dirl_sim import StudyConfig
 from bench.dirl_steps import (
     evaluate,
     frames_in,
@@ -59,6 +58,7 @@ from bench.dirl_steps import (
     iteration_drives,
     reimitate_flags,
 )
+from bench.study_config import StudyConfig
 from bench.study_steps import StudyStep
 
 ARMS = {"outcomes": "true", "uniform": "false"}  # arm → outcome_advantage

@@ -66,7 +66,6 @@ from bench.check_steps import (
     suffix,
     write_results,
 )
-from bench.dirl_sim import StudyConfig
 from bench.dirl_steps import (
     evaluate,
     exploration_drives,
@@ -79,6 +78,7 @@ from bench.dirl_steps import (
 )
 from bench.dirl_table import plot
 from bench.drift_steps import drift, drift_table, member_runs, read_drift
+from bench.study_config import StudyConfig
 from bench.study_steps import StudyStep, output_of
 
 

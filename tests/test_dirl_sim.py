@@ -12,7 +12,7 @@ import json
 
 import pytest
 
-from bench import dirl_sim, dirl_steps, dirl_table
+from bench import dirl_sim, dirl_steps, dirl_table, study_config
 from bench.study_steps import TYPICAL_S, step_kind
 
 
@@ -44,7 +44,7 @@ def test_settings_parse_tuples_and_refuse_unknown_fields():
 
 
 def test_threads_and_jobs_default_to_every_usable_core_split_among_parallel_steps(monkeypatch):
-    monkeypatch.setattr(dirl_sim.os, "sched_getaffinity", lambda pid: set(range(16)))
+    monkeypatch.setattr(study_config.os, "sched_getaffinity", lambda pid: set(range(16)))
     cfg = dirl_sim.parse(["--set", "parallel=3"])
     assert (cfg.threads, cfg.jobs) == (0, 0)  # "every core", resolved when steps are built
     assert (cfg.all_threads(), cfg.all_jobs(), cfg.step_threads(), cfg.step_jobs()) == (
