@@ -3,8 +3,9 @@
 import pytest
 import torch
 
+from training.backbone import ResNet18Backbone
 from training.data import Normalisation
-from training.models import NIG, PolicyNet, ResNet18Backbone, WorldModel, WorldPrediction
+from training.models import NIG, PolicyNet, WorldModel, WorldPrediction
 from training.profiles import PROFILES, get_profile
 
 TINY = get_profile("tiny")
