@@ -47,7 +47,8 @@ plan and whether the world model's uncertainty rose there (carrt-refine-drift), 
 spread (a deep ensemble's uncertainty) the crash-only rows' drift reports too
 (bench/drift_steps.py); `paper_corrected_in=drives-only,…` adds, in the world models it names,
 the paper's form with p̂ corrected ("paper-corrected" ± unc: the class weight divided out of
-the collision probability, every constraint still off).
+the collision probability, every constraint still off). Those steps are
+bench/takeover_refine.py's.
 """
 
 from __future__ import annotations
@@ -68,18 +69,17 @@ from bench.check_steps import (
 )
 from bench.dirl_steps import (
     evaluate,
-    exploration_drives,
     frames_in,
     il_equal_data,
     iterate_cmd,
     reimitate_flags,
-    run_settings,
     takeover_drives,
 )
 from bench.dirl_table import plot
-from bench.drift_steps import drift, drift_table, member_runs, read_drift
+from bench.drift_steps import drift_table, read_drift
 from bench.study_config import StudyConfig
 from bench.study_steps import StudyStep, output_of
+from bench.takeover_refine import forms, name_of, refined, sources, world_model_run
 
 
 @dataclass
@@ -211,113 +211,6 @@ def for_noise(cfg: TakeoverConfig, sigma: float) -> TakeoverConfig:
 def equal_at(cfg: TakeoverConfig, k: int) -> bool:
     """Whether IL at equal frames trains at round k (`il_equal_at`; empty: every round)."""
     return not cfg.il_equal_at or k in cfg.il_equal_at
-
-
-# iterate.py settings of the paper's refinement: every safeguard of training/config.py off
-PAPER_FORM = [
-    *("--set", "refine_w_anchor=0", "--set", "refine_w_imitation=0"),
-    *("--set", "refine_center_gradient=false", "--set", "collision_prior_correction=false"),
-]
-# the paper's form with the one safeguard that is a correction, not a constraint: p̂ as a
-# probability (the class weight the world model trained with divided out); later --set wins
-PAPER_CORRECTED = [*PAPER_FORM, "--set", "collision_prior_correction=true"]
-
-
-def world_model_run(cfg: TakeoverConfig, tag: str, source: str = "") -> Path:
-    """The run whose world model learnt every frame up to the last round (`refine`), and the
-    last round's exploration drives with source "drives" (`refine_with_drives`), without the
-    take-over labels with "drives-crashes-only" (`refine_crashes_only`)."""
-    name = "-".join(x for x in (f"takeovers{cfg.rounds}", source, "world-model") if x)
-    return Path(cfg.out) / "runs" / tag / name
-
-
-def refined(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data: list[Path],
-            last: Path, frames: int) -> dict[str, tuple[Path, int]]:  # fmt: skip
-    """The last round's policy refined in a world model of every frame so far, with and
-    without the uncertainty term (and in the paper's form): {row: (run, frames)}; with
-    `refine_with_drives`, the same in a world model that also learnt the last policy's
-    exploration drives."""
-    out = refinements(cfg, step, tag, seed, data, last, frames, "")
-    if not cfg.refine_with_drives:
-        return out
-    drives = exploration_drives(cfg.study, step, tag, cfg.rounds, last, kind="round-drives")
-    more, more_frames = [*data, drives], frames + frames_in([drives])
-    for source in ("drives", "drives-crashes-only")[: 1 + cfg.refine_crashes_only]:
-        out |= refinements(cfg, step, tag, seed, more, last, more_frames, source)
-    if cfg.more_drive_tracks:
-        extra = exploration_drives(cfg.study, step, tag, cfg.rounds, last, kind="more-drives",
-                                   tracks=cfg.more_drive_tracks)  # fmt: skip
-        most, most_frames = [*more, extra], more_frames + frames_in([extra])
-        out |= refinements(cfg, step, tag, seed, most, last, most_frames,
-                           "more-drives-crashes-only")  # fmt: skip
-        # the world model on the exploration drives alone; refinement still on every frame
-        out |= refinements(cfg, step, tag, seed, most, last, most_frames, "drives-only",
-                           world_data=[drives, extra])  # fmt: skip
-    return out
-
-
-def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data: list[Path],
-                last: Path, frames: int, source: str,
-                world_data: list[Path] | None = None) -> dict[str, tuple[Path, int]]:  # fmt: skip
-    """One world model on `world_data` (default `data`) from the last round's policy (its
-    counterfactual check in its run's metrics.json), then each refinement variant from it, on
-    `data`."""
-    study, k = cfg.study, cfg.rounds
-    runs, world = Path(cfg.out) / "runs" / tag, world_model_run(cfg, tag, source)
-    prefix = f"takeovers{k}-{source}-" if source else f"takeovers{k}-"
-    settings = run_settings(study, seed, every=0)  # the gradient, the study's safeguards
-    takeovers = cfg.takeovers_as_collisions and source in ("", "drives")
-    labels = f"takeovers_as_collisions={str(takeovers).lower()}"
-
-    def world_model_cmd(run: Path, extra: list[str]) -> list[str]:
-        return iterate_cmd(study, world_data or data, run, "--init", str(last), *settings,
-                           "--set", f"world_model_steps={study.world_model_steps}", "--set",
-                           "refine_steps=0", "--set", labels, *extra)  # fmt: skip
-
-    step(f"train-{tag}-{world.name}", world_model_cmd(world, []), world / ".done")
-    members = []
-    if cfg.drift_members and source == "drives-crashes-only":
-        members = member_runs(step, tag, world, seed, cfg.drift_members, world_model_cmd)
-    out, unc = {}, ["--no-uncertainty"]
-    for name in forms(cfg, source):
-        paper = PAPER_CORRECTED if name.startswith("paper-corrected") else PAPER_FORM
-        flags = [*(paper if name.startswith("paper") else []),
-                 *(unc if name.endswith("-unc") else [])]  # fmt: skip
-        run = runs / f"{prefix}{name}"
-        step(f"train-{tag}-{run.name}", iterate_cmd(study, data, run, "--init",
-             str(world), *settings, "--set", "world_model_steps=0", "--set",
-             f"refine_steps={study.refine_steps}", "--set", "counterfactual_starts=0",
-             "--set", labels, *flags),
-             run / ".done")  # fmt: skip
-        if cfg.refine_drift:
-            drift(step, tag, run, world, members)
-        out[f"takeovers{k}+{source + '+' if source else ''}{name}"] = (run, frames)
-    return out
-
-
-def forms(cfg: TakeoverConfig, source: str) -> list[str]:
-    """The refinement variants the world model of `source` gets: the study's, the paper's, the
-    paper's with p̂ corrected where `paper_corrected_in` names it, each -unc."""
-    bases = ["refined", *(["paper"] if cfg.refine_paper_form else [])]
-    bases += ["paper-corrected"] if name_of(source) in cfg.paper_corrected_in else []
-    return [x for base in bases for x in (base, f"{base}-unc")]
-
-
-def name_of(source: str) -> str:
-    """A world model's name in `paper_corrected_in`: its source, "rounds" for the rounds' frames."""
-    return source or "rounds"
-
-
-def sources(cfg: TakeoverConfig) -> list[str]:
-    """The world models refinement runs in: "" (the rounds' frames), "drives" (+ drives),
-    "drives-crashes-only" (+ drives, take-overs not labelled collisions),
-    "more-drives-crashes-only" (+ drives on `more_drive_tracks` too, crashes alone),
-    "drives-only" (the exploration drives alone: measured on seed 0, the demonstrations' and
-    take-overs' frames, where the action is a function of the image, taught the others to
-    predict from the frame and ignore the steering)."""
-    more = ["drives", *(["drives-crashes-only"] if cfg.refine_crashes_only else [])]
-    more += ["more-drives-crashes-only", "drives-only"] if cfg.more_drive_tracks else []
-    return ["", *more] if cfg.refine_with_drives else [""]
 
 
 def pairs(cfg: TakeoverConfig) -> list[tuple[str, str]]:

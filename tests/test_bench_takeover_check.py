@@ -8,7 +8,14 @@ import json
 
 import pytest
 
-from bench import check_steps, dirl_steps, drift_steps, outcome_check, takeover_check
+from bench import (
+    check_steps,
+    dirl_steps,
+    drift_steps,
+    outcome_check,
+    takeover_check,
+    takeover_refine,
+)
 
 
 def _chain(monkeypatch, tmp_path, *sets, sigma=0.0, seed=0):
@@ -16,7 +23,8 @@ def _chain(monkeypatch, tmp_path, *sets, sigma=0.0, seed=0):
     steps = []
     monkeypatch.setattr(takeover_check, "evaluate", lambda *a: {"runs": [], "aggregate": {}})
     # every episode directory holds 1,000 frames; the second pool is handed out 1,000 at a time
-    monkeypatch.setattr(takeover_check, "frames_in", lambda paths: 1000 * len(paths))
+    for module in (takeover_check, takeover_refine):
+        monkeypatch.setattr(module, "frames_in", lambda paths: 1000 * len(paths))
     monkeypatch.setattr(
         dirl_steps, "top_up", lambda pool, frames: [pool / f"{i}" for i in range(frames // 1000)]
     )
@@ -430,7 +438,8 @@ def test_the_last_trained_policies_are_driven_first_and_the_rows_keep_training_o
 
     cfg = takeover_check.parse(["--set", f"out={tmp_path}", "--set", "rounds=2"])
     monkeypatch.setattr(takeover_check, "evaluate", evaluate)
-    monkeypatch.setattr(takeover_check, "frames_in", lambda paths: 1000 * len(paths))
+    for module in (takeover_check, takeover_refine):
+        monkeypatch.setattr(module, "frames_in", lambda paths: 1000 * len(paths))
     monkeypatch.setattr(dirl_steps, "top_up", lambda pool, frames: [pool / "0"])
     rows = [{"model": "an earlier chain's"}]
     takeover_check.chain(cfg, lambda *step: None, 0.0, 0, rows)
