@@ -224,13 +224,13 @@ def test_cannot_create_episode_reports_error_without_raising(tmp_path):
 def stalled_disk(monkeypatch) -> threading.Event:
     """Every write to the episode files waits (up to 10 s) until the returned event is set."""
     release = threading.Event()
-    real_write = writer_mod._write_all
+    real_write = writer_mod.write_all
 
     def stalled_write(fd, data):
         release.wait(10)
         real_write(fd, data)
 
-    monkeypatch.setattr(writer_mod, "_write_all", stalled_write)
+    monkeypatch.setattr(writer_mod, "write_all", stalled_write)
     return release
 
 

@@ -215,13 +215,13 @@ def test_recording_on_the_simulated_clock_waits_for_a_slow_disk_and_drops_nothin
     simulated clock the loop waits for the writer, so every step is on disk, in order."""
     import carrt.episodes.writer as writer_mod
 
-    real_write = writer_mod._write_all
+    real_write = writer_mod.write_all
 
     def slow_write(fd, data):
         time.sleep(0.005)
         real_write(fd, data)
 
-    monkeypatch.setattr(writer_mod, "_write_all", slow_write)
+    monkeypatch.setattr(writer_mod, "write_all", slow_write)
     out = tmp_path / "expert"
     code = CliRun(
         ["teleop", "--sim", "--expert", "auto", "--record", "--layout", "easy",

@@ -20,10 +20,12 @@ record, so a record never describes a frame that is not on disk.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
 import struct
+import time
 import zlib
 from pathlib import Path
 from typing import Any
@@ -203,6 +205,32 @@ def fsync_dir(path: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def new_episode_dir(root: Path, wall: float) -> Path:
+    """`<YYYYmmdd-HHMMSS>-<nnn>`, unique even when a car without an RTC repeats a clock."""
+    stem = time.strftime("%Y%m%d-%H%M%S", time.localtime(wall))
+    for n in range(100_000):
+        path = root / f"{stem}-{n:03d}"
+        try:
+            path.mkdir()
+        except FileExistsError:
+            continue
+        fsync_dir(root)
+        return path
+    raise FileExistsError(errno.EEXIST, "no free episode name", str(root / stem))
+
+
+def write_all(fd: int, data: bytes) -> None:
+    """All of `data` to `fd`: os.write may write less than asked (a pipe, a signal, a full disk)."""
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view) :]
+
+
+def datasync(fd: int) -> None:
+    """The file's data on the disk (fdatasync where the OS has it: the size, not the times)."""
+    (os.fdatasync if hasattr(os, "fdatasync") else os.fsync)(fd)
 
 
 def write_json_atomic(path: Path, data: dict[str, Any]) -> None:

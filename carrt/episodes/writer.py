@@ -35,6 +35,7 @@ import numpy as np
 
 from carrt import __version__
 from carrt.episodes import format as fmt
+from carrt.episodes.format import write_all  # a module name of its own: tests stall the disk here
 from carrt.interfaces import HORIZON, IMAGE_SHAPE, Clock, Step
 
 _FULL_ERRNOS = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
@@ -255,7 +256,7 @@ class EpisodeWriter:
         ep = _Episode(serial=serial, dtype=fmt.step_dtype(horizon))
         try:
             self.root.mkdir(parents=True, exist_ok=True)
-            ep.path = _new_episode_dir(self.root, wall)
+            ep.path = fmt.new_episode_dir(self.root, wall)
             self.last_episode_path = ep.path
             self.synced = 0
             self.episodes += 1
@@ -291,8 +292,8 @@ class EpisodeWriter:
             return
         record = fmt.pack_step(step, image, ep.n, ep.dtype)
         try:
-            _write_all(ep.frames_fd, image)
-            _write_all(ep.steps_fd, record)
+            write_all(ep.frames_fd, image)
+            write_all(ep.steps_fd, record)
         except OSError:
             self._lost += 1
             ep.lost += 1
@@ -303,8 +304,8 @@ class EpisodeWriter:
         self.written += 1
 
     def _sync(self, ep: _Episode) -> None:
-        _datasync(ep.frames_fd)
-        _datasync(ep.steps_fd)
+        fmt.datasync(ep.frames_fd)
+        fmt.datasync(ep.steps_fd)
         n = ep.n
         fmt.write_json_atomic(ep.path / fmt.SYNCED, {"steps": n})
         ep.synced = n
@@ -350,8 +351,8 @@ class EpisodeWriter:
         try:  # cut a half-written step off, so the reader need not
             os.ftruncate(ep.frames_fd, ep.n * fmt.FRAME_BYTES)
             os.ftruncate(ep.steps_fd, ep.n * ep.dtype.itemsize)
-            _datasync(ep.frames_fd)
-            _datasync(ep.steps_fd)
+            fmt.datasync(ep.frames_fd)
+            fmt.datasync(ep.steps_fd)
             fmt.write_json_atomic(ep.path / fmt.SYNCED, {"steps": ep.n})
             ep.synced = ep.n
             self.synced = ep.n
@@ -376,30 +377,6 @@ def _stamp(wall: float, mono: float, reason: str | None = None) -> dict[str, Any
     if reason is not None:
         out["reason"] = reason
     return out
-
-
-def _new_episode_dir(root: Path, wall: float) -> Path:
-    """`<YYYYmmdd-HHMMSS>-<nnn>`, unique even when a car without an RTC repeats a clock."""
-    stem = time.strftime("%Y%m%d-%H%M%S", time.localtime(wall))
-    for n in range(100_000):
-        path = root / f"{stem}-{n:03d}"
-        try:
-            path.mkdir()
-        except FileExistsError:
-            continue
-        fmt.fsync_dir(root)
-        return path
-    raise FileExistsError(errno.EEXIST, "no free episode name", str(root / stem))
-
-
-def _write_all(fd: int, data: bytes) -> None:
-    view = memoryview(data)
-    while view:
-        view = view[os.write(fd, view) :]
-
-
-def _datasync(fd: int) -> None:
-    (os.fdatasync if hasattr(os, "fdatasync") else os.fsync)(fd)
 
 
 def _close_fds(ep: _Episode) -> None:
