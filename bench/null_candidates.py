@@ -19,6 +19,13 @@ the mean |Δμ| over recorded frames of --episodes (export.parity.sample_frames,
 export's parity check uses) equals the --like candidate's (within 2 %). OUT gets null<k>.pt
 (the start checkpoint with the moved weights, loadable wherever a policy checkpoint is) and
 null.json with each one's plan move (steering and throttle separately) beside the --like one's.
+
+`--throttle-only`: one candidate instead, OUT/throttle.pt, whose plan's throttle is shifted by
+as much on average (signed, mean Δ throttle over the frames and steps) as the --like
+candidate's, its steering untouched: the head's pre-tanh throttle biases moved alike, no world
+model behind it. Why: at σ 0.5 with a lasting-error person refinement improved driving on five
+seeds and mostly raised the throttle (docs/dirl_study.md); if this drives as well, the world
+model's part in that was only "go a little faster".
 """
 
 from __future__ import annotations
@@ -68,26 +75,70 @@ def random_direction(policy: torch.nn.Module, generator: torch.Generator) -> dic
     return direction
 
 
-def matched_scale(policy, state: dict, direction: dict, frames: Frames, start, target: float):
-    """Bisection on the noise scale until the plan moves `target` (mean |Δμ|): (scale, the
-    plan_move at it). Leaves the policy holding the weights of that scale."""
+def throttle_direction(policy: torch.nn.Module) -> dict:
+    """+1 on the pre-tanh throttle μ of every horizon step (column 1 of the head's last bias, laid
+    out (H, 4): μ steering, μ throttle, σ steering, σ throttle); everything else untouched."""
+    key = next(k for k, _ in reversed(list(policy.named_parameters())) if k.endswith("bias"))
+    bias = dict(policy.named_parameters())[key].detach()
+    direction = torch.zeros_like(bias).view(-1, 4)
+    direction[:, 1] = 1.0
+    return {key: direction.view(-1)}
 
-    def move_at(scale: float) -> dict:
+
+def throttle_shift(moved: np.ndarray, start: np.ndarray) -> float:
+    """Mean signed Δ throttle over frames and steps."""
+    return float((moved - start)[..., 1].mean())
+
+
+def matched_scale(policy, state: dict, direction: dict, frames: Frames, start, target: float,
+                  measure=lambda moved, start: plan_move(moved, start)["both"]):  # fmt: skip
+    """Bisection on the scale until `measure` of the plan's move (default mean |Δμ|) reaches
+    `target` > 0: (scale, the plan_move at it). Leaves the policy holding those weights."""
+
+    def move_at(scale: float) -> tuple[float, dict]:
         policy.load_state_dict(perturbed(state, direction, scale))
-        return plan_move(plan(policy, frames), start)
+        moved = plan(policy, frames)
+        return measure(moved, start), plan_move(moved, start)
 
     low, high = 0.0, 1e-3
     for _ in range(40):  # grow until the move overshoots
-        if move_at(high)["both"] >= target:
+        if move_at(high)[0] >= target:
             break
         low, high = high, 2 * high
     for _ in range(40):
         mid = 0.5 * (low + high)
-        move = move_at(mid)
-        if abs(move["both"] - target) <= TOLERANCE * target:
+        value, move = move_at(mid)
+        if abs(value - target) <= TOLERANCE * target:
             break
-        low, high = (mid, high) if move["both"] < target else (low, mid)
+        low, high = (mid, high) if value < target else (low, mid)
     return mid, move
+
+
+def make_throttle_candidate(start: Path, like: Path, episodes: list[str], out: Path) -> dict:
+    """OUT/throttle.pt: `start` with its throttle shifted as far as `like`'s, on average."""
+    policy, ckpt = ck.load_policy(start)
+    reference, _ = ck.load_policy(like)
+    frames = sample_frames(episodes, max_frames=FRAMES)
+    start_plan = plan(policy, frames)
+    target = throttle_shift(plan(reference, frames), start_plan)
+    if not abs(target) > 0:
+        raise UserError(f"{like}: its throttle equals {start}'s; nothing to match")
+    state = {k: v.clone() for k, v in policy.state_dict().items()}
+    sign = 1.0 if target > 0 else -1.0
+    direction = {k: sign * v for k, v in throttle_direction(policy).items()}
+    scale, move = matched_scale(policy, state, direction, frames, start_plan, abs(target),
+                                lambda moved, s: sign * throttle_shift(moved, s))  # fmt: skip
+    achieved = throttle_shift(plan(policy, frames), start_plan)  # the policy holds those weights
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "throttle.pt"
+    ck.save_checkpoint(path, **{**ckpt, "policy": perturbed(state, direction, scale)})
+    summary = {"start": str(start), "like": str(like), "frames": len(frames),
+               "like_move": plan_move(plan(reference, frames), start_plan),
+               "like_throttle_shift": target,
+               "throttle": {"checkpoint": str(path), "scale": scale, "move": move,
+                            "throttle_shift": achieved}}  # fmt: skip
+    (out / "throttle.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
 
 
 def make_null_candidates(start: Path, like: Path, episodes: list[str], count: int, out: Path,
@@ -124,10 +175,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--count", type=int, default=4)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, type=Path)
+    p.add_argument(
+        "--throttle-only",
+        action="store_true",
+        help="one candidate, OUT/throttle.pt: only the throttle shifted as --like's",
+    )
     a = p.parse_args(argv)
     try:
         if a.count < 1:
             raise UserError(f"--count must be >= 1, got {a.count}")
+        if a.throttle_only:
+            summary = make_throttle_candidate(a.start, a.like, a.episodes, a.out)
+            t = summary["throttle"]
+            print(f"{a.like}: mean throttle shift {summary['like_throttle_shift']:+.4f}; "
+                  f"{t['checkpoint']}: {t['throttle_shift']:+.4f} (|Δ steering| "
+                  f"{t['move']['steering']:.4f})")  # fmt: skip
+            return 0
         summary = make_null_candidates(a.start, a.like, a.episodes, a.count, a.out, a.seed)
     except UserError as exc:
         print(f"null_candidates: {exc}", file=sys.stderr)

@@ -84,3 +84,27 @@ def test_bad_input_is_one_line_and_exit_2(start_and_like, sim_episodes, tmp_path
         assert null.main([*argv, *common]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and expected in err[0], err
+
+
+def test_the_throttle_only_candidate_shifts_the_throttle_as_far_and_leaves_the_steering(
+    start_and_like, sim_episodes, tmp_path, one_thread
+):
+    """--throttle-only: one candidate whose mean signed throttle shift is the --like one's
+    (within 2 %), with the steering plan and every weight but the head's last bias unchanged."""
+    start, like = start_and_like
+    argv = ["--start", str(start), "--like", str(like), "--episodes", str(sim_episodes),
+            "--out", str(tmp_path), "--throttle-only"]  # fmt: skip
+    assert null.main(argv) == 0
+    summary = json.loads((tmp_path / "throttle.json").read_text())
+    target, made = summary["like_throttle_shift"], summary["throttle"]
+    assert target != 0 and abs(made["throttle_shift"] - target) <= 0.02 * abs(target), summary
+    policy, ckpt = ck.load_policy(made["checkpoint"])
+    start_policy, _ = ck.load_policy(start)
+    changed = [k for k, v in ckpt["policy"].items()
+               if not torch.equal(v, ck.load_checkpoint(start)["policy"][k])]  # fmt: skip
+    assert len(changed) == 1 and changed[0].startswith("head") and changed[0].endswith("bias")
+    frames = sample_frames([sim_episodes], max_frames=64)
+    moved, before = null.plan(policy, frames), null.plan(start_policy, frames)
+    assert np.array_equal(moved[..., 0], before[..., 0])  # steering untouched
+    shift = (moved - before)[..., 1]
+    assert np.sign(shift.mean()) == np.sign(target) and (np.sign(shift) == np.sign(target)).all()
