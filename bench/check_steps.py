@@ -160,7 +160,6 @@ def study_for(p: argparse.ArgumentParser, cfg) -> StudyConfig:
     study = dataclasses.replace(cfg.study, out=cfg.out, seeds=cfg.seeds,
                                 demo_noise=cfg.demo_noise, parallel=cfg.parallel,
                                 threads=cores, jobs=cores, eval_tracks=cfg.eval_tracks)  # fmt: skip
-    own = {"demo_noise", "parallel"}  # the check's own fields; the rest are set as study.FIELD
-    for problem in range_problems(study, lambda f: f if f in own else f"study.{f}"):
+    for problem in range_problems(study, lambda f: f if f in CHECK_OWNS else f"study.{f}"):
         p.error(problem)
     return study

@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -78,9 +79,9 @@ def random_direction(policy: torch.nn.Module, generator: torch.Generator) -> dic
 def throttle_direction(policy: torch.nn.Module) -> dict:
     """+1 on the pre-tanh throttle μ of every horizon step (column 1 of the head's last bias, laid
     out (H, 4): μ steering, μ throttle, σ steering, σ throttle); everything else untouched."""
-    key = next(k for k, _ in reversed(list(policy.named_parameters())) if k.endswith("bias"))
-    bias = dict(policy.named_parameters())[key].detach()
-    direction = torch.zeros_like(bias).view(-1, 4)
+    key, bias = next((k, v) for k, v in reversed(list(policy.named_parameters()))
+                     if k.endswith("bias"))  # fmt: skip
+    direction = torch.zeros_like(bias.detach()).view(-1, 4)
     direction[:, 1] = 1.0
     return {key: direction.view(-1)}
 
@@ -93,7 +94,8 @@ def throttle_shift(moved: np.ndarray, start: np.ndarray) -> float:
 def matched_scale(policy, state: dict, direction: dict, frames: Frames, start, target: float,
                   measure=lambda moved, start: plan_move(moved, start)["both"]):  # fmt: skip
     """Bisection on the scale until `measure` of the plan's move (default mean |Δμ|) reaches
-    `target` > 0: (scale, the plan_move at it). Leaves the policy holding those weights."""
+    `target` > 0: (scale, the plan_move at it, `measure` at it). Leaves the policy holding
+    those weights."""
 
     def move_at(scale: float) -> tuple[float, dict]:
         policy.load_state_dict(perturbed(state, direction, scale))
@@ -111,57 +113,74 @@ def matched_scale(policy, state: dict, direction: dict, frames: Frames, start, t
         if abs(value - target) <= TOLERANCE * target:
             break
         low, high = (mid, high) if value < target else (low, mid)
-    return mid, move
+    return mid, move, value
+
+
+@dataclass
+class Moving:
+    """What both kinds of candidate start from: the start policy (its checkpoint, a copy of its
+    weights), the recorded frames, and the start's and the --like candidate's plans on them."""
+
+    policy: torch.nn.Module
+    ckpt: dict
+    state: dict
+    frames: Frames
+    start_plan: np.ndarray
+    like_plan: np.ndarray
+
+
+def moving(start: Path, like: Path, episodes: list[str]) -> Moving:
+    """Load `start` and `like`, sample the frames once and plan both on them."""
+    policy, ckpt = ck.load_policy(start)
+    reference, _ = ck.load_policy(like)
+    frames = sample_frames(episodes, max_frames=FRAMES)
+    state = {k: v.clone() for k, v in policy.state_dict().items()}
+    return Moving(policy, ckpt, state, frames, plan(policy, frames), plan(reference, frames))
 
 
 def make_throttle_candidate(start: Path, like: Path, episodes: list[str], out: Path) -> dict:
     """OUT/throttle.pt: `start` with its throttle shifted as far as `like`'s, on average."""
-    policy, ckpt = ck.load_policy(start)
-    reference, _ = ck.load_policy(like)
-    frames = sample_frames(episodes, max_frames=FRAMES)
-    start_plan = plan(policy, frames)
-    target = throttle_shift(plan(reference, frames), start_plan)
+    m = moving(start, like, episodes)
+    target = throttle_shift(m.like_plan, m.start_plan)
     if not abs(target) > 0:
         raise UserError(f"{like}: its throttle equals {start}'s; nothing to match")
-    state = {k: v.clone() for k, v in policy.state_dict().items()}
     sign = 1.0 if target > 0 else -1.0
-    direction = {k: sign * v for k, v in throttle_direction(policy).items()}
-    scale, move = matched_scale(policy, state, direction, frames, start_plan, abs(target),
-                                lambda moved, s: sign * throttle_shift(moved, s))  # fmt: skip
-    achieved = throttle_shift(plan(policy, frames), start_plan)  # the policy holds those weights
+    direction = {k: sign * v for k, v in throttle_direction(m.policy).items()}
+
+    def shift(moved: np.ndarray, start_plan: np.ndarray) -> float:
+        return sign * throttle_shift(moved, start_plan)
+
+    scale, move, value = matched_scale(m.policy, m.state, direction, m.frames, m.start_plan,
+                                       abs(target), shift)  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     path = out / "throttle.pt"
-    ck.save_checkpoint(path, **{**ckpt, "policy": perturbed(state, direction, scale)})
-    summary = {"start": str(start), "like": str(like), "frames": len(frames),
-               "like_move": plan_move(plan(reference, frames), start_plan),
-               "like_throttle_shift": target,
+    ck.save_checkpoint(path, **{**m.ckpt, "policy": perturbed(m.state, direction, scale)})
+    summary = {"start": str(start), "like": str(like), "frames": len(m.frames),
+               "like_move": plan_move(m.like_plan, m.start_plan), "like_throttle_shift": target,
                "throttle": {"checkpoint": str(path), "scale": scale, "move": move,
-                            "throttle_shift": achieved}}  # fmt: skip
+                            "throttle_shift": sign * value}}  # fmt: skip
     (out / "throttle.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
 
 def make_null_candidates(start: Path, like: Path, episodes: list[str], count: int, out: Path,
                          seed: int = 0) -> dict:  # fmt: skip
-    policy, ckpt = ck.load_policy(start)
-    reference, _ = ck.load_policy(like)
-    frames = sample_frames(episodes, max_frames=FRAMES)
-    start_plan = plan(policy, frames)
-    target = plan_move(plan(reference, frames), start_plan)
+    m = moving(start, like, episodes)
+    target = plan_move(m.like_plan, m.start_plan)
     if not target["both"] > 0:
         raise UserError(f"{like}: its plan equals {start}'s; nothing to match")
-    state = {k: v.clone() for k, v in policy.state_dict().items()}
     generator = torch.Generator().manual_seed(seed)
     out.mkdir(parents=True, exist_ok=True)
     made = []
     for k in range(count):
-        direction = random_direction(policy, generator)
-        scale, move = matched_scale(policy, state, direction, frames, start_plan, target["both"])
+        direction = random_direction(m.policy, generator)
+        scale, move, _ = matched_scale(m.policy, m.state, direction, m.frames, m.start_plan,
+                                       target["both"])  # fmt: skip
         path = out / f"null{k}.pt"
-        ck.save_checkpoint(path, **{**ckpt, "policy": perturbed(state, direction, scale)})
+        ck.save_checkpoint(path, **{**m.ckpt, "policy": perturbed(m.state, direction, scale)})
         made.append({"name": path.stem, "checkpoint": str(path), "scale": scale, "move": move})
     summary = {"start": str(start), "like": str(like), "like_move": target, "frames":
-               len(frames), "seed": seed, "null": made}  # fmt: skip
+               len(m.frames), "seed": seed, "null": made}  # fmt: skip
     (out / "null.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
