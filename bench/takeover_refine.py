@@ -16,6 +16,7 @@ from bench.drift_steps import drift, member_runs
 from bench.study_steps import StudyStep
 
 if TYPE_CHECKING:
+    from bench.study_config import StudyConfig
     from bench.takeover_check import TakeoverConfig
 
 
@@ -90,15 +91,23 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
         flags = [*(paper if name.startswith("paper") else []),
                  *(unc if name.endswith("-unc") else [])]  # fmt: skip
         run = runs / f"{prefix}{name}"
-        step(f"train-{tag}-{run.name}", iterate_cmd(study, data, run, "--init",
-             str(world), *settings, "--set", "world_model_steps=0", "--set",
-             f"refine_steps={study.refine_steps}", "--set", "counterfactual_starts=0",
-             "--set", labels, *flags),
+        step(f"train-{tag}-{run.name}", refine_cmd(study, data, run, world, seed, labels, flags),
              run / ".done")  # fmt: skip
         if cfg.refine_drift:
             drift(step, tag, run, world, members)
         out[f"takeovers{k}+{source + '+' if source else ''}{name}"] = (run, frames)
     return out
+
+
+def refine_cmd(study: StudyConfig, data: list[Path], run: Path, init: Path, seed: int,
+               labels: str, flags: list[str] | tuple[str, ...] = ()) -> list[str]:  # fmt: skip
+    """iterate.py: the policy of `init` (a run directory: policy.pt, world_model.pt) refined
+    for the study's refine_steps in `init`'s world model, frozen, from `data`'s frames, with
+    the study's safeguards unless `flags` turn them off (PAPER_FORM, --no-uncertainty)."""
+    return iterate_cmd(study, data, run, "--init", str(init), *run_settings(study, seed, every=0),
+                       "--set", "world_model_steps=0", "--set",
+                       f"refine_steps={study.refine_steps}", "--set", "counterfactual_starts=0",
+                       "--set", labels, *flags)  # fmt: skip
 
 
 def forms(cfg: TakeoverConfig, source: str) -> list[str]:

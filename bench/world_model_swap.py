@@ -1,0 +1,216 @@
+"""Which half made refinement work: the policy it started from, or the world model it ran in?
+
+    python -m bench.world_model_swap --set out=bench/results/swap-s05-in-s1 \
+        --set policy_out=bench/results/tau05 --set policy_noise=0.5 --set policy_rounds=2 \
+        --set world_out=bench/results/tau05 --set world_noise=1 --set world_rounds=2
+
+Why: with the lasting-error person (τ 0.5 s) refinement beat the round it started from at
+σ 0.5 on five seeds (+0.038 ± 0.009 completion) and did not at σ 0 or σ 1.0 (docs/dirl_study.md,
+"the lasting-error person on five seeds"). Each of those refinements changed two things at
+once: the policy it started from and the world model it ran in. Here one take-over check's last
+round's policy (`policy_out`, `policy_noise`, `policy_rounds`: bench/takeover_check.py's OUT
+layout) is refined in ANOTHER check's world model of its last round's frames (`world_out`, …),
+everything else as that check's `refine` step ran it (bench/takeover_refine.refine_cmd: the
+study's safeguards, its steps, the same seed, the start policy's own frames for the imitation
+term and the start states), and driven on the test placements. With `world_*` equal to
+`policy_*` it remakes the check's own refined policy (the same weights: a check of the swap).
+
+A world model learns only recorded episodes, so refining a policy in another chain's world
+model uses nothing a real car could not record. The rows: the start policy ("takeovers<k>"),
+its refinement in its own world model ("takeovers<k>+refined", the check's), and in the other
+("takeovers<k>+refined-in-noise<σ'>"), each with how far refinement moved the plan on the
+start's recorded frames (mean |Δ steering|, |Δ throttle|, signed Δ throttle;
+bench.null_candidates' measure). OUT/results-swap.json and OUT/table-swap.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from bench.check_steps import read_sets, report, study_for, suffix
+from bench.dirl_steps import ROOT, evaluate
+from bench.provenance import environment
+from bench.study_config import StudyConfig
+from bench.study_steps import StudyStep, finished_steps, output_of, run_chains, step_kind
+from bench.takeover_refine import refine_cmd
+
+
+@dataclass
+class SwapConfig:
+    """Whose policy is refined in whose world model; the study's settings as the checks ran."""
+
+    out: str = "bench/results/swap"
+    policy_out: str = "bench/results/tau05"  # the take-over check whose last round is refined
+    policy_noise: float = 0.5
+    policy_rounds: int = 2
+    world_out: str = "bench/results/tau05"  # the take-over check whose world model it runs in
+    world_noise: float = 1.0
+    world_rounds: int = 2
+    # as the take-over check labelled its world models' and refinements' frames
+    takeovers_as_collisions: bool = True
+    seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
+    eval_tracks: str = StudyConfig.eval_tracks
+    parallel: int = 2
+    # the checks' own fields study_for sets (it reads them off any check's config)
+    demo_noise: tuple[float, ...] = ()
+    study: StudyConfig = field(default_factory=StudyConfig)
+
+
+@dataclass(frozen=True)
+class Chain:
+    """One seed's paths: the start (the check's world model run: the last round's policy and
+    that world model), the other world model, the start's frames and its evaluated rows."""
+
+    tag: str
+    start: Path
+    world: Path
+    data: list[Path]
+    start_eval: Path
+    own_refined_eval: Path
+
+
+def chain_paths(cfg: SwapConfig, seed: int) -> Chain:
+    def runs(out: str, sigma: float) -> Path:
+        return Path(out) / "runs" / f"noise{sigma:g}-seed{seed}"
+
+    k, mine = cfg.policy_rounds, runs(cfg.policy_out, cfg.policy_noise)
+    data = Path(cfg.policy_out) / "data"
+    episodes = [data / f"expert-noise{cfg.policy_noise:g}"]
+    episodes += [
+        data / f"rounds-noise{cfg.policy_noise:g}-seed{seed}-iter{i}" for i in range(1, k + 1)
+    ]
+    world = runs(cfg.world_out, cfg.world_noise) / f"takeovers{cfg.world_rounds}-world-model"
+    result = f"eval{suffix(cfg)}.json"
+    return Chain(f"noise{cfg.policy_noise:g}-seed{seed}", mine / f"takeovers{k}-world-model",
+                 world, episodes, mine / f"takeovers{k}" / result,
+                 mine / f"takeovers{k}-refined" / result)  # fmt: skip
+
+
+def missing_inputs(cfg: SwapConfig) -> list[str]:
+    """What a seed needs that its checks have not made (one line each)."""
+    out = []
+    for seed in cfg.seeds:
+        c = chain_paths(cfg, seed)
+        needed = [c.start / "policy.pt", c.world / "world_model.pt", *c.data, c.start_eval]
+        out += [f"{p} does not exist (seed {seed})" for p in needed if not p.exists()]
+    return out
+
+
+def other_name(cfg: SwapConfig) -> str:
+    return f"refined-in-noise{cfg.world_noise:g}"
+
+
+def compose(start: Path, world: Path, into: Path) -> Path:
+    """A run directory holding the start's policy and the other world model, for --init."""
+    into.mkdir(parents=True, exist_ok=True)
+    shutil.copy2(start / "policy.pt", into / "policy.pt")
+    shutil.copy2(world / "world_model.pt", into / "world_model.pt")
+    return into
+
+
+def plan_moves(start: Path, refined: Path, episodes: list[Path]) -> dict:
+    """How far refinement moved the plan on the start's recorded frames (null_candidates'
+    measure: mean |Δμ| by channel and the signed throttle shift)."""
+    from bench.null_candidates import FRAMES, plan, plan_move, throttle_shift
+    from export.parity import sample_frames
+    from training import checkpoint as ck
+
+    frames = sample_frames([str(e) for e in episodes], max_frames=FRAMES)
+    before = plan(ck.load_policy(start)[0], frames)
+    after = plan(ck.load_policy(refined)[0], frames)
+    return plan_move(after, before) | {"throttle_signed": throttle_shift(after, before)}
+
+
+def chain(cfg: SwapConfig, step: StudyStep, seed: int, rows: list[dict]) -> None:
+    c, k = chain_paths(cfg, seed), cfg.policy_rounds
+    run = Path(cfg.out) / "runs" / c.tag / f"takeovers{k}-{other_name(cfg)}"
+    init = compose(c.start, c.world, run.with_name(run.name + "-init"))
+    labels = f"takeovers_as_collisions={str(cfg.takeovers_as_collisions).lower()}"
+    step(f"train-{c.tag}-{run.name}", refine_cmd(cfg.study, c.data, run, init, seed, labels),
+         run / ".done")  # fmt: skip
+    model = f"takeovers{k}+{other_name(cfg)}"
+    result = run / f"eval{suffix(cfg)}.json"
+    driven = evaluate(cfg.study, step, f"{c.tag}-{model}{suffix(cfg)}", run / "policy.onnx", result)
+    counting = getattr(step, "counting", False)  # a resumed run's count: rows thrown away
+    evaluated = [(f"takeovers{k}", c.start_eval), (f"takeovers{k}+refined", c.own_refined_eval),
+                 (model, result)]  # fmt: skip
+    for name, out in evaluated:
+        driving = driven if out == result else output_of(step, out) if out.is_file() else None
+        if not driving:
+            continue
+        refined = out.parent / "policy.pt"
+        moved = None
+        if name != f"takeovers{k}" and not counting and refined.is_file():
+            moved = plan_moves(c.start / "policy.pt", refined, c.data)
+        rows.append({"model": name, "seed": seed, "run": str(out.parent), "moved": moved,
+                     "aggregate": driving.get("aggregate"),
+                     "runs": driving.get("runs", [])})  # fmt: skip
+
+
+def parse(argv: list[str] | None) -> SwapConfig:
+    p, cfg = read_sets(argv, SwapConfig(), "bench.world_model_swap", __doc__, "SwapConfig")
+    for option in ("policy_rounds", "world_rounds"):
+        if getattr(cfg, option) < 1:
+            p.error(f"{option}: {getattr(cfg, option)} (1 or more)")
+    if not cfg.seeds:
+        p.error("seeds: none given")
+    cfg = dataclasses.replace(cfg, demo_noise=(cfg.policy_noise,))
+    cfg = dataclasses.replace(cfg, study=study_for(p, cfg))
+    problems = missing_inputs(cfg)
+    if problems:
+        p.error(
+            f"{problems[0]}" + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else "")
+        )
+    return cfg
+
+
+def moves_table(rows: list[dict]) -> str:
+    """Markdown: per refined model, the plan's move on the start's frames, mean over seeds."""
+    lines = ["| refined model | seeds | \\|Δ steering\\| | \\|Δ throttle\\| "
+             "| Δ throttle (signed) |", "|---|---|---|---|---|"]  # fmt: skip
+    for model in dict.fromkeys(r["model"] for r in rows if r.get("moved")):
+        moved = [r["moved"] for r in rows if r["model"] == model and r.get("moved")]
+        mean = {key: sum(m[key] for m in moved) / len(moved)
+                for key in ("steering", "throttle", "throttle_signed")}  # fmt: skip
+        lines.append(f"| {model} | {len(moved)} | {mean['steering']:.4f} | "
+                     f"{mean['throttle']:.4f} | {mean['throttle_signed']:+.4f} |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    cfg = parse(argv)
+    out, started = Path(cfg.out), time.monotonic()
+    out.mkdir(parents=True, exist_ok=True)
+    names = [f"train-noise0-seed0-takeovers{cfg.policy_rounds}-{other_name(cfg)}", "eval-x"]
+    kinds = {step_kind(name): len(cfg.seeds) for name in names}
+
+    def walk(step: StudyStep) -> list[dict]:
+        chains = [functools.partial(chain, cfg, step, seed) for seed in cfg.seeds]
+        return run_chains(chains)[0]
+
+    finished = finished_steps(out, kinds, walk)
+    rows = walk(StudyStep(out, kinds, parallel=cfg.parallel, cwd=ROOT, finished_before=finished))
+    k, other = cfg.policy_rounds, f"takeovers{cfg.policy_rounds}+{other_name(cfg)}"
+    pairs = [(other, f"takeovers{k}"), (f"takeovers{k}+refined", f"takeovers{k}"),
+             (other, f"takeovers{k}+refined")]  # fmt: skip
+    text = (f"σ {cfg.policy_noise:g}'s round {k} ({cfg.policy_out}) refined in σ "
+            f"{cfg.world_noise:g}'s world model of round {cfg.world_rounds} ({cfg.world_out}):"
+            f"\n\n{report(rows, pairs)}\n\nHow far refinement moved the plan, on the start's "
+            f"recorded frames:\n\n{moves_table(rows)}")  # fmt: skip
+    results = {"config": dataclasses.asdict(cfg), "rows": rows,
+               "wall_s": time.monotonic() - started, "environment": environment()}  # fmt: skip
+    (out / "results-swap.json").write_text(json.dumps(results, indent=1) + "\n")
+    (out / "table-swap.md").write_text(text + "\n")
+    print("\n" + text + f"\n\nwritten: {out}/results-swap.json, {out}/table-swap.md")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

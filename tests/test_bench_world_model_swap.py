@@ -1,0 +1,111 @@
+"""bench/world_model_swap.py: one check's last-round policy refined in another check's world
+model. The swap itself trains and drives for half an hour; here what it refines in which world
+model, that its command is the take-over check's own refinement with only the world model
+changed, and its one-line refusals."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from bench import dirl_steps, takeover_check, takeover_refine, world_model_swap
+
+
+def _check_tree(root, sigma: float, rounds: int, seeds=(0,), tag_bytes=b""):
+    """The files a finished take-over check leaves that the swap reads."""
+    data = root / "data"
+    for name in [f"expert-noise{sigma:g}"] + [
+        f"rounds-noise{sigma:g}-seed{s}-iter{i}" for s in seeds for i in range(1, rounds + 1)
+    ]:
+        (data / name).mkdir(parents=True, exist_ok=True)
+    for s in seeds:
+        runs = root / "runs" / f"noise{sigma:g}-seed{s}"
+        world = runs / f"takeovers{rounds}-world-model"
+        world.mkdir(parents=True)
+        (world / "policy.pt").write_bytes(b"policy of " + tag_bytes)
+        (world / "world_model.pt").write_bytes(b"world model of " + tag_bytes)
+        (world / "metrics.json").write_text("{}")
+        for run in (f"takeovers{rounds}", f"takeovers{rounds}-refined"):
+            (runs / run).mkdir()
+            laps = {"runs": [{"track": 100, "completion_ratio": 0.5, "collisions_per_min": 2.0,
+                              "average_speed": 1.5}], "aggregate": {}}  # fmt: skip
+            (runs / run / "eval.json").write_text(json.dumps(laps))
+
+
+def _swap_cfg(tmp_path, *sets):
+    _check_tree(tmp_path / "half", 0.5, 2, tag_bytes=b"half")
+    _check_tree(tmp_path / "one", 1.0, 2, tag_bytes=b"one")
+    return world_model_swap.parse(
+        ["--set", f"out={tmp_path / 'swap'}", "--set", f"policy_out={tmp_path / 'half'}",
+         "--set", "policy_noise=0.5", "--set", f"world_out={tmp_path / 'one'}",
+         "--set", "world_noise=1", "--set", "seeds=0", *sets]
+    )  # fmt: skip
+
+
+def test_the_start_policy_is_refined_in_the_other_world_model_as_the_check_refines(
+    monkeypatch, tmp_path
+):
+    cfg = _swap_cfg(tmp_path)
+    steps, rows = {}, []
+    driven = {"runs": [{"track": 100, "completion_ratio": 0.7}], "aggregate": {"n": 1}}
+    monkeypatch.setattr(world_model_swap, "evaluate", lambda *a: driven)
+    world_model_swap.chain(cfg, lambda name, argv, marker: steps.update({name: argv}), 0, rows)
+    swap = steps["train-noise0.5-seed0-takeovers2-refined-in-noise1"]
+    init = swap[swap.index("--init") + 1]
+    # the composed start: σ 0.5's policy, σ 1.0's world model
+    assert (tmp_path / init / "policy.pt").read_bytes() == b"policy of half"
+    assert (tmp_path / init / "world_model.pt").read_bytes() == b"world model of one"
+
+    # the take-over check's own refinement of the same round: the same command but for where
+    # it starts (its own world model's run) and where it writes
+    check = takeover_check.parse(["--set", f"out={tmp_path / 'half'}", "--set", "refine=true",
+                                  "--set", "demo_noise=0.5"])  # fmt: skip
+    recorded = {}
+    monkeypatch.setattr(takeover_check, "evaluate", lambda *a: {"runs": [], "aggregate": {}})
+    for module in (takeover_check, takeover_refine):
+        monkeypatch.setattr(module, "frames_in", lambda paths: 1000 * len(paths))
+    monkeypatch.setattr(dirl_steps, "top_up", lambda pool, frames: [pool])
+    takeover_check.chain(check, lambda n, argv, m: recorded.update({n: argv}), 0.5, 0, [])
+    own = recorded["train-noise0.5-seed0-takeovers2-refined"]
+    out = str(tmp_path / "swap" / "runs" / "noise0.5-seed0" / "takeovers2-refined-in-noise1")
+    own_world = str(tmp_path / "half" / "runs" / "noise0.5-seed0" / "takeovers2-world-model")
+    assert swap == [out if a.endswith("takeovers2-refined") else init if a == own_world else a
+                    for a in own]  # fmt: skip
+    # the rows: the start and its own refinement as the check drove them, then the swap's laps
+    assert [r["model"] for r in rows] == [
+        "takeovers2", "takeovers2+refined", "takeovers2+refined-in-noise1"]  # fmt: skip
+    assert rows[0]["runs"][0]["completion_ratio"] == 0.5
+    assert rows[2]["runs"] == driven["runs"] and rows[2]["aggregate"] == {"n": 1}
+
+
+def test_the_swapped_rows_are_paired_with_the_start_and_its_own_refinement(tmp_path):
+    rows = [{"model": m, "seed": 0, "runs": [{"track": 100, "completion_ratio": c,
+             "collisions_per_min": 1.0, "average_speed": 1.0}],
+             "moved": None if m == "takeovers2" else {"steering": 0.02, "throttle": 0.01,
+                                                       "throttle_signed": s}}
+            for m, c, s in (("takeovers2", 0.5, 0), ("takeovers2+refined", 0.6, 0.01),
+                            ("takeovers2+refined-in-noise1", 0.4, -0.01))]  # fmt: skip
+    table = world_model_swap.moves_table(rows)
+    assert "| takeovers2+refined | 1 | 0.0200 | 0.0100 | +0.0100 |" in table
+    assert "| takeovers2+refined-in-noise1 | 1 | 0.0200 | 0.0100 | -0.0100 |" in table
+    assert "takeovers2 |" not in table.replace("takeovers2+", "")
+
+
+@pytest.mark.parametrize(
+    ("sets", "says"),
+    [
+        (["--set", "world_noise=0.7"], "noise0.7-seed0/takeovers2-world-model/world_model.pt"),
+        (["--set", "policy_rounds=3"], "takeovers3-world-model/policy.pt"),
+        (["--set", "policy_rounds=0"], "policy_rounds: 0 (1 or more)"),
+        (["--set", "seeds=0,1"], "(seed 1)"),
+    ],
+)
+def test_a_check_that_did_not_make_what_the_swap_needs_is_refused_in_one_line(
+    tmp_path, capsys, sets, says
+):
+    with pytest.raises(SystemExit) as stop:
+        _swap_cfg(tmp_path, *sets)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert says in err and "Traceback" not in err
