@@ -54,6 +54,26 @@ def make_step(
     return Step(**fields)
 
 
+def mixed_steps(n: int = 30, seed: int = 0) -> list[Step]:
+    """Every mode and flag appears; AUTO steps carry a plan."""
+    modes = [Mode.DISARMED, Mode.MANUAL, Mode.AUTO, Mode.AUTO, Mode.MANUAL, Mode.ESTOP]
+    steps = []
+    for i in range(n):
+        mode = modes[i % len(modes)]
+        steps.append(
+            make_step(
+                i,
+                seed=seed,
+                mode=mode,
+                override=i % 7 == 3,
+                estop=mode == Mode.ESTOP,
+                collision=i == 17,
+                lap=i % 10 == 5,
+            )
+        )
+    return steps
+
+
 def metadata(**extra: Any) -> dict[str, Any]:
     return run_metadata(command="test", car_config={"loop": {"rate_hz": 10.0}}, **extra)
 
