@@ -31,6 +31,7 @@ import json
 import shutil
 import sys
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -55,6 +56,9 @@ class SwapConfig:
     world_rounds: int = 2
     # as the take-over check labelled its world models' and refinements' frames
     takeovers_as_collisions: bool = True
+    # also the paper's -unc ablation in the other world model (--no-uncertainty), paired with
+    # the refinement with the term: does the term matter in a world model where refinement works?
+    unc: bool = False
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     eval_tracks: str = StudyConfig.eval_tracks
     parallel: int = 2
@@ -103,8 +107,14 @@ def missing_inputs(cfg: SwapConfig) -> list[str]:
     return out
 
 
-def other_name(cfg: SwapConfig) -> str:
-    return f"refined-in-noise{cfg.world_noise:g}"
+def other_name(cfg: SwapConfig, unc: bool = False) -> str:
+    return f"refined{'-unc' if unc else ''}-in-noise{cfg.world_noise:g}"
+
+
+def variants(cfg: SwapConfig) -> list[tuple[str, list[str]]]:
+    """(run name part, iterate.py flags) of each refinement in the other world model."""
+    out = [(other_name(cfg), [])]
+    return [*out, (other_name(cfg, unc=True), ["--no-uncertainty"])] if cfg.unc else out
 
 
 def compose(start: Path, world: Path, into: Path) -> Path:
@@ -130,19 +140,22 @@ def plan_moves(start: Path, refined: Path, episodes: list[Path]) -> dict:
 
 def chain(cfg: SwapConfig, step: StudyStep, seed: int, rows: list[dict]) -> None:
     c, k = chain_paths(cfg, seed), cfg.policy_rounds
-    run = Path(cfg.out) / "runs" / c.tag / f"takeovers{k}-{other_name(cfg)}"
-    init = compose(c.start, c.world, run.with_name(run.name + "-init"))
+    runs = Path(cfg.out) / "runs" / c.tag
+    init = compose(c.start, c.world, runs / f"takeovers{k}-{other_name(cfg)}-init")
     labels = f"takeovers_as_collisions={str(cfg.takeovers_as_collisions).lower()}"
-    step(f"train-{c.tag}-{run.name}", refine_cmd(cfg.study, c.data, run, init, seed, labels),
-         run / ".done")  # fmt: skip
-    model = f"takeovers{k}+{other_name(cfg)}"
-    result = run / f"eval{suffix(cfg)}.json"
-    driven = evaluate(cfg.study, step, f"{c.tag}-{model}{suffix(cfg)}", run / "policy.onnx", result)
+    evaluated = [(f"takeovers{k}", c.start_eval), (f"takeovers{k}+refined", c.own_refined_eval)]
+    driven = {}
+    for name, flags in variants(cfg):
+        run, model = runs / f"takeovers{k}-{name}", f"takeovers{k}+{name}"
+        argv = refine_cmd(cfg.study, c.data, run, init, seed, labels, flags)
+        step(f"train-{c.tag}-{run.name}", argv, run / ".done")
+        result = run / f"eval{suffix(cfg)}.json"
+        driven[result] = evaluate(cfg.study, step, f"{c.tag}-{model}{suffix(cfg)}",
+                                  run / "policy.onnx", result)  # fmt: skip
+        evaluated.append((model, result))
     counting = getattr(step, "counting", False)  # a resumed run's count: rows thrown away
-    evaluated = [(f"takeovers{k}", c.start_eval), (f"takeovers{k}+refined", c.own_refined_eval),
-                 (model, result)]  # fmt: skip
     for name, out in evaluated:
-        driving = driven if out == result else output_of(step, out) if out.is_file() else None
+        driving = driven.get(out) or (output_of(step, out) if out.is_file() else None)
         if not driving:
             continue
         refined = out.parent / "policy.pt"
@@ -188,8 +201,10 @@ def main(argv: list[str] | None = None) -> int:
     cfg = parse(argv)
     out, started = Path(cfg.out), time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
-    names = [f"train-noise0-seed0-takeovers{cfg.policy_rounds}-{other_name(cfg)}", "eval-x"]
-    kinds = {step_kind(name): len(cfg.seeds) for name in names}
+    k = cfg.policy_rounds
+    trains = [step_kind(f"train-noise0-seed0-takeovers{k}-{name}") for name, _ in variants(cfg)]
+    kinds = Counter({kind: len(cfg.seeds) for kind in trains})
+    kinds["eval"] = len(variants(cfg)) * len(cfg.seeds)
 
     def walk(step: StudyStep) -> list[dict]:
         chains = [functools.partial(chain, cfg, step, seed) for seed in cfg.seeds]
@@ -197,9 +212,11 @@ def main(argv: list[str] | None = None) -> int:
 
     finished = finished_steps(out, kinds, walk)
     rows = walk(StudyStep(out, kinds, parallel=cfg.parallel, cwd=ROOT, finished_before=finished))
-    k, other = cfg.policy_rounds, f"takeovers{cfg.policy_rounds}+{other_name(cfg)}"
+    other = f"takeovers{k}+{other_name(cfg)}"
     pairs = [(other, f"takeovers{k}"), (f"takeovers{k}+refined", f"takeovers{k}"),
              (other, f"takeovers{k}+refined")]  # fmt: skip
+    if cfg.unc:
+        pairs += [(other, f"takeovers{k}+{other_name(cfg, unc=True)}")]
     text = (f"σ {cfg.policy_noise:g}'s round {k} ({cfg.policy_out}) refined in σ "
             f"{cfg.world_noise:g}'s world model of round {cfg.world_rounds} ({cfg.world_out}):"
             f"\n\n{report(rows, pairs)}\n\nHow far refinement moved the plan, on the start's "

@@ -109,3 +109,20 @@ def test_a_check_that_did_not_make_what_the_swap_needs_is_refused_in_one_line(
     assert stop.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert says in err and "Traceback" not in err
+
+
+def test_unc_adds_the_papers_ablation_in_the_same_other_world_model(monkeypatch, tmp_path):
+    cfg = _swap_cfg(tmp_path, "--set", "unc=true")
+    steps, rows = {}, []
+    monkeypatch.setattr(world_model_swap, "evaluate", lambda *a: {"runs": [], "aggregate": {}})
+    world_model_swap.chain(cfg, lambda name, argv, marker: steps.update({name: argv}), 0, rows)
+    refined = steps["train-noise0.5-seed0-takeovers2-refined-in-noise1"]
+    unc = steps["train-noise0.5-seed0-takeovers2-refined-unc-in-noise1"]
+    # the same start, world model and settings; only the uncertainty term dropped
+    out = refined[refined.index("--out") + 1]
+    assert [a for a in unc if a != "--no-uncertainty"] == [
+        a.replace("refined-in-noise1", "refined-unc-in-noise1") if a == out else a for a in refined
+    ]
+    assert "--no-uncertainty" in unc and "--no-uncertainty" not in refined
+    assert [r["model"] for r in rows][-2:] == [
+        "takeovers2+refined-in-noise1", "takeovers2+refined-unc-in-noise1"]  # fmt: skip
