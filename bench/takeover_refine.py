@@ -72,19 +72,16 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
     study, k = cfg.study, cfg.rounds
     runs, world = Path(cfg.out) / "runs" / tag, world_model_run(cfg, tag, source)
     prefix = f"takeovers{k}-{source}-" if source else f"takeovers{k}-"
-    settings = run_settings(study, seed, every=0)  # the gradient, the study's safeguards
     takeovers = cfg.takeovers_as_collisions and source in ("", "drives")
     labels = f"takeovers_as_collisions={str(takeovers).lower()}"
 
-    def world_model_cmd(run: Path, extra: list[str]) -> list[str]:
-        return iterate_cmd(study, world_data or data, run, "--init", str(last), *settings,
-                           "--set", f"world_model_steps={study.world_model_steps}", "--set",
-                           "refine_steps=0", "--set", labels, *extra)  # fmt: skip
+    def learn(run: Path, extra: list[str]) -> list[str]:
+        return world_model_cmd(study, world_data or data, run, last, seed, labels, extra)
 
-    step(f"train-{tag}-{world.name}", world_model_cmd(world, []), world / ".done")
+    step(f"train-{tag}-{world.name}", learn(world, []), world / ".done")
     members = []
     if cfg.drift_members and source == "drives-crashes-only":
-        members = member_runs(step, tag, world, seed, cfg.drift_members, world_model_cmd)
+        members = member_runs(step, tag, world, seed, cfg.drift_members, learn)
     out, unc = {}, ["--no-uncertainty"]
     for name in forms(cfg, source):
         paper = PAPER_CORRECTED if name.startswith("paper-corrected") else PAPER_FORM
@@ -97,6 +94,16 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
             drift(step, tag, run, world, members)
         out[f"takeovers{k}+{source + '+' if source else ''}{name}"] = (run, frames)
     return out
+
+
+def world_model_cmd(study: StudyConfig, data: list[Path], run: Path, last: Path, seed: int,
+                    labels: str, extra: list[str] | tuple[str, ...] = ()) -> list[str]:  # fmt: skip
+    """iterate.py: a world model learns `data`'s frames for the study's world_model_steps,
+    starting from `last` (a round's run: its policy, kept as it is, and the world model it
+    carries), its counterfactual check in the run's metrics.json."""
+    return iterate_cmd(study, data, run, "--init", str(last), *run_settings(study, seed, every=0),
+                       "--set", f"world_model_steps={study.world_model_steps}", "--set",
+                       "refine_steps=0", "--set", labels, *extra)  # fmt: skip
 
 
 def refine_cmd(study: StudyConfig, data: list[Path], run: Path, init: Path, seed: int,

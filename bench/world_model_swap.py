@@ -40,7 +40,7 @@ from bench.dirl_steps import ROOT, evaluate
 from bench.provenance import environment
 from bench.study_config import StudyConfig
 from bench.study_steps import StudyStep, finished_steps, output_of, run_chains, step_kind
-from bench.takeover_refine import refine_cmd
+from bench.takeover_refine import refine_cmd, world_model_cmd
 
 
 @dataclass
@@ -59,6 +59,10 @@ class SwapConfig:
     # also the paper's -unc ablation in the other world model (--no-uncertainty), paired with
     # the refinement with the term: does the term matter in a world model where refinement works?
     unc: bool = False
+    # "all": the world check's own world model; "demos" or "rounds": one learnt here anew, by
+    # the check's own command from the same round's run, on only that check's demonstrations
+    # or only its take-over rounds (which of its data carries what refinement uses)
+    world_data: str = "all"
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     eval_tracks: str = StudyConfig.eval_tracks
     parallel: int = 2
@@ -70,7 +74,8 @@ class SwapConfig:
 @dataclass(frozen=True)
 class Chain:
     """One seed's paths: the start (the check's world model run: the last round's policy and
-    that world model), the other world model, the start's frames and its evaluated rows."""
+    that world model), the other world model (and, with `world_data`, the run it is learnt
+    from and on which frames), the start's frames and its evaluated rows."""
 
     tag: str
     start: Path
@@ -78,6 +83,19 @@ class Chain:
     data: list[Path]
     start_eval: Path
     own_refined_eval: Path
+    world_from: Path | None = None
+    world_episodes: tuple[Path, ...] = ()
+
+
+WORLD_DATA = ("all", "demos", "rounds")
+
+
+def episodes_of(out: str, sigma: float, seed: int, rounds: int) -> tuple[Path, list[Path]]:
+    """A take-over check's demonstrations and its chain's take-over rounds, as it names them."""
+    data = Path(out) / "data"
+    return data / f"expert-noise{sigma:g}", [
+        data / f"rounds-noise{sigma:g}-seed{seed}-iter{i}" for i in range(1, rounds + 1)
+    ]
 
 
 def chain_paths(cfg: SwapConfig, seed: int) -> Chain:
@@ -85,16 +103,18 @@ def chain_paths(cfg: SwapConfig, seed: int) -> Chain:
         return Path(out) / "runs" / f"noise{sigma:g}-seed{seed}"
 
     k, mine = cfg.policy_rounds, runs(cfg.policy_out, cfg.policy_noise)
-    data = Path(cfg.policy_out) / "data"
-    episodes = [data / f"expert-noise{cfg.policy_noise:g}"]
-    episodes += [
-        data / f"rounds-noise{cfg.policy_noise:g}-seed{seed}-iter{i}" for i in range(1, k + 1)
-    ]
-    world = runs(cfg.world_out, cfg.world_noise) / f"takeovers{cfg.world_rounds}-world-model"
+    demos, rounds = episodes_of(cfg.policy_out, cfg.policy_noise, seed, k)
+    theirs, kw = runs(cfg.world_out, cfg.world_noise), cfg.world_rounds
+    world, world_from, world_episodes = theirs / f"takeovers{kw}-world-model", None, ()
+    if cfg.world_data != "all":
+        their_demos, their_rounds = episodes_of(cfg.world_out, cfg.world_noise, seed, kw)
+        world_episodes = tuple([their_demos] if cfg.world_data == "demos" else their_rounds)
+        world_from = theirs / f"takeovers{kw}"
+        world = runs(cfg.out, cfg.world_noise) / f"takeovers{kw}-{cfg.world_data}-world-model"
     result = f"eval{suffix(cfg)}.json"
     return Chain(f"noise{cfg.policy_noise:g}-seed{seed}", mine / f"takeovers{k}-world-model",
-                 world, episodes, mine / f"takeovers{k}" / result,
-                 mine / f"takeovers{k}-refined" / result)  # fmt: skip
+                 world, [demos, *rounds], mine / f"takeovers{k}" / result,
+                 mine / f"takeovers{k}-refined" / result, world_from, world_episodes)  # fmt: skip
 
 
 def missing_inputs(cfg: SwapConfig) -> list[str]:
@@ -102,13 +122,18 @@ def missing_inputs(cfg: SwapConfig) -> list[str]:
     out = []
     for seed in cfg.seeds:
         c = chain_paths(cfg, seed)
-        needed = [c.start / "policy.pt", c.world / "world_model.pt", *c.data, c.start_eval]
+        needed = [c.start / "policy.pt", *c.data, c.start_eval]
+        if c.world_from is None:
+            needed.append(c.world / "world_model.pt")
+        else:
+            needed += [c.world_from / "policy.pt", *c.world_episodes]
         out += [f"{p} does not exist (seed {seed})" for p in needed if not p.exists()]
     return out
 
 
 def other_name(cfg: SwapConfig, unc: bool = False) -> str:
-    return f"refined{'-unc' if unc else ''}-in-noise{cfg.world_noise:g}"
+    data = "" if cfg.world_data == "all" else f"-{cfg.world_data}"
+    return f"refined{'-unc' if unc else ''}-in-noise{cfg.world_noise:g}{data}"
 
 
 def variants(cfg: SwapConfig) -> list[tuple[str, list[str]]]:
@@ -141,8 +166,14 @@ def plan_moves(start: Path, refined: Path, episodes: list[Path]) -> dict:
 def chain(cfg: SwapConfig, step: StudyStep, seed: int, rows: list[dict]) -> None:
     c, k = chain_paths(cfg, seed), cfg.policy_rounds
     runs = Path(cfg.out) / "runs" / c.tag
-    init = compose(c.start, c.world, runs / f"takeovers{k}-{other_name(cfg)}-init")
     labels = f"takeovers_as_collisions={str(cfg.takeovers_as_collisions).lower()}"
+    if c.world_from is not None:  # the other world model, learnt here on part of its data
+        argv = world_model_cmd(cfg.study, list(c.world_episodes), c.world, c.world_from, seed,
+                               labels)  # fmt: skip
+        step(f"train-noise{cfg.world_noise:g}-seed{seed}-{c.world.name}", argv, c.world / ".done")
+        if not (c.world / "world_model.pt").is_file():  # a resumed run's count stops here
+            return
+    init = compose(c.start, c.world, runs / f"takeovers{k}-{other_name(cfg)}-init")
     evaluated = [(f"takeovers{k}", c.start_eval), (f"takeovers{k}+refined", c.own_refined_eval)]
     driven = {}
     for name, flags in variants(cfg):
@@ -174,6 +205,8 @@ def parse(argv: list[str] | None) -> SwapConfig:
             p.error(f"{option}: {getattr(cfg, option)} (1 or more)")
     if not cfg.seeds:
         p.error("seeds: none given")
+    if cfg.world_data not in WORLD_DATA:
+        p.error(f"world_data: {cfg.world_data!r} (one of {', '.join(WORLD_DATA)})")
     cfg = dataclasses.replace(cfg, demo_noise=(cfg.policy_noise,))
     cfg = dataclasses.replace(cfg, study=study_for(p, cfg))
     problems = missing_inputs(cfg)
@@ -205,6 +238,9 @@ def main(argv: list[str] | None = None) -> int:
     trains = [step_kind(f"train-noise0-seed0-takeovers{k}-{name}") for name, _ in variants(cfg)]
     kinds = Counter({kind: len(cfg.seeds) for kind in trains})
     kinds["eval"] = len(variants(cfg)) * len(cfg.seeds)
+    if cfg.world_data != "all":
+        learnt = f"train-noise0-seed0-takeovers{cfg.world_rounds}-{cfg.world_data}-world-model"
+        kinds[step_kind(learnt)] = len(cfg.seeds)
 
     def walk(step: StudyStep) -> list[dict]:
         chains = [functools.partial(chain, cfg, step, seed) for seed in cfg.seeds]

@@ -31,6 +31,7 @@ def _check_tree(root, sigma: float, rounds: int, seeds=(0,), tag_bytes=b""):
             laps = {"runs": [{"track": 100, "completion_ratio": 0.5, "collisions_per_min": 2.0,
                               "average_speed": 1.5}], "aggregate": {}}  # fmt: skip
             (runs / run / "eval.json").write_text(json.dumps(laps))
+        (runs / f"takeovers{rounds}" / "policy.pt").write_bytes(b"last round of " + tag_bytes)
 
 
 def _swap_cfg(tmp_path, *sets):
@@ -99,6 +100,7 @@ def test_the_swapped_rows_are_paired_with_the_start_and_its_own_refinement(tmp_p
         (["--set", "policy_rounds=3"], "takeovers3-world-model/policy.pt"),
         (["--set", "policy_rounds=0"], "policy_rounds: 0 (1 or more)"),
         (["--set", "seeds=0,1"], "(seed 1)"),
+        (["--set", "world_data=drives"], "world_data: 'drives' (one of all, demos, rounds)"),
     ],
 )
 def test_a_check_that_did_not_make_what_the_swap_needs_is_refused_in_one_line(
@@ -126,3 +128,37 @@ def test_unc_adds_the_papers_ablation_in_the_same_other_world_model(monkeypatch,
     assert "--no-uncertainty" in unc and "--no-uncertainty" not in refined
     assert [r["model"] for r in rows][-2:] == [
         "takeovers2+refined-in-noise1", "takeovers2+refined-unc-in-noise1"]  # fmt: skip
+
+
+@pytest.mark.parametrize("part", ["demos", "rounds"])
+def test_world_data_learns_the_other_world_model_anew_on_part_of_its_frames(
+    monkeypatch, tmp_path, part
+):
+    cfg = _swap_cfg(tmp_path, "--set", f"world_data={part}")
+    steps = {}
+
+    def step(name, argv, marker):
+        steps[name] = argv
+        if "world-model" in name:  # the world model it learns
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            (marker.parent / "world_model.pt").write_bytes(b"learnt on " + part.encode())
+
+    monkeypatch.setattr(world_model_swap, "evaluate", lambda *a: {"runs": [], "aggregate": {}})
+    world_model_swap.chain(cfg, step, 0, [])
+    learn = steps[f"train-noise1-seed0-takeovers2-{part}-world-model"]
+    data = tmp_path / "one" / "data"
+    wanted = [data / "expert-noise1"] if part == "demos" else [
+        data / "rounds-noise1-seed0-iter1", data / "rounds-noise1-seed0-iter2"]  # fmt: skip
+    episodes = learn[learn.index("--episodes") + 1 : learn.index("--out")]
+    assert episodes == [str(p) for p in wanted]
+    # the check's own world-model command: from the world check's last round, its labels
+    assert learn[learn.index("--init") + 1] == str(tmp_path / "one" / "runs" / "noise1-seed0"
+                                                   / "takeovers2")  # fmt: skip
+    assert learn == takeover_refine.world_model_cmd(
+        cfg.study, wanted, tmp_path / "swap" / "runs" / "noise1-seed0" /
+        f"takeovers2-{part}-world-model", tmp_path / "one" / "runs" / "noise1-seed0" /
+        "takeovers2", 0, "takeovers_as_collisions=true")  # fmt: skip
+    refine = steps[f"train-noise0.5-seed0-takeovers2-refined-in-noise1-{part}"]
+    init = refine[refine.index("--init") + 1]
+    assert (tmp_path / init / "world_model.pt").read_bytes() == b"learnt on " + part.encode()
+    assert (tmp_path / init / "policy.pt").read_bytes() == b"policy of half"
