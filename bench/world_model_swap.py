@@ -20,7 +20,12 @@ model uses nothing a real car could not record. The rows: the start policy ("tak
 its refinement in its own world model ("takeovers<k>+refined", the check's), and in the other
 ("takeovers<k>+refined-in-noise<σ'>"), each with how far refinement moved the plan on the
 start's recorded frames (mean |Δ steering|, |Δ throttle|, signed Δ throttle;
-bench.null_candidates' measure). OUT/results-swap.json and OUT/table-swap.md.
+bench.null_candidates' measure), and the swapped rows with what the other world model is (its
+run, training frames and collision frames, its counterfactual check and its response to
+steering, from its metrics.json). `unc=true` adds the paper's -unc ablation in the other world
+model; `world_data=demos` or `rounds` learns the other world model here anew, by the check's own
+command from the same round's run (takeover_refine.world_model_cmd), on only the other check's
+demonstrations or only its take-over rounds. OUT/results-swap.json and OUT/table-swap.md.
 """
 
 from __future__ import annotations
@@ -193,9 +198,23 @@ def chain(cfg: SwapConfig, step: StudyStep, seed: int, rows: list[dict]) -> None
         moved = None
         if name != f"takeovers{k}" and not counting and refined.is_file():
             moved = plan_moves(c.start / "policy.pt", refined, c.data)
-        rows.append({"model": name, "seed": seed, "run": str(out.parent), "moved": moved,
-                     "aggregate": driving.get("aggregate"),
-                     "runs": driving.get("runs", [])})  # fmt: skip
+        row = {"model": name, "seed": seed, "run": str(out.parent), "moved": moved,
+               "aggregate": driving.get("aggregate"), "runs": driving.get("runs", [])}  # fmt: skip
+        rows.append(row | ({"world_model": world_model_facts(c.world)} if out in driven else {}))
+
+
+def world_model_facts(run: Path) -> dict | None:
+    """What a world model learnt from and how its checks scored it (its run's metrics.json)."""
+    path = run / "metrics.json"
+    if not path.is_file():
+        return None
+    m = json.loads(path.read_text())
+    metrics, data = m.get("metrics") or {}, m.get("data") or {}
+    return {"run": str(run), "train_frames": data.get("train_frames"),
+            "collision_frames": data.get("collision_frames"),
+            "response_steering_risk": metrics.get("response_steering_risk"),
+            "collision_auroc_held_out": metrics.get("collision_auroc"),
+            "counterfactual": m.get("counterfactual")}  # fmt: skip
 
 
 def parse(argv: list[str] | None) -> SwapConfig:
