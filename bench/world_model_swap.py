@@ -179,7 +179,9 @@ def chain(cfg: SwapConfig, step: StudyStep, seed: int, rows: list[dict]) -> None
         if not (c.world / "world_model.pt").is_file():  # a resumed run's count stops here
             return
     init = compose(c.start, c.world, runs / f"takeovers{k}-{other_name(cfg)}-init")
-    evaluated = [(f"takeovers{k}", c.start_eval), (f"takeovers{k}+refined", c.own_refined_eval)]
+    il_equal = c.start_eval.parent.with_name(f"il-equal-takeovers{k}") / c.start_eval.name
+    evaluated = [(f"takeovers{k}", c.start_eval), (f"IL-equal-takeovers{k}", il_equal),
+                 (f"takeovers{k}+refined", c.own_refined_eval)]  # fmt: skip
     driven = {}
     for name, flags in variants(cfg):
         run, model = runs / f"takeovers{k}-{name}", f"takeovers{k}+{name}"
@@ -196,7 +198,7 @@ def chain(cfg: SwapConfig, step: StudyStep, seed: int, rows: list[dict]) -> None
             continue
         refined = out.parent / "policy.pt"
         moved = None
-        if name != f"takeovers{k}" and not counting and refined.is_file():
+        if "+" in name and not counting and refined.is_file():
             moved = plan_moves(c.start / "policy.pt", refined, c.data)
         row = {"model": name, "seed": seed, "run": str(out.parent), "moved": moved,
                "aggregate": driving.get("aggregate"), "runs": driving.get("runs", [])}  # fmt: skip
@@ -269,11 +271,17 @@ def main(argv: list[str] | None = None) -> int:
     rows = walk(StudyStep(out, kinds, parallel=cfg.parallel, cwd=ROOT, finished_before=finished))
     other = f"takeovers{k}+{other_name(cfg)}"
     pairs = [(other, f"takeovers{k}"), (f"takeovers{k}+refined", f"takeovers{k}"),
-             (other, f"takeovers{k}+refined")]  # fmt: skip
+             (other, f"takeovers{k}+refined"), (other, f"IL-equal-takeovers{k}"),
+             (f"takeovers{k}+refined", f"IL-equal-takeovers{k}")]  # fmt: skip
     if cfg.unc:
         pairs += [(other, f"takeovers{k}+{other_name(cfg, unc=True)}")]
+    which = {
+        "all": f"world model of round {cfg.world_rounds}",
+        "demos": "demonstrations, a world model learnt on them alone",
+        "rounds": f"take-over rounds 1-{cfg.world_rounds}, a world model learnt on them alone",
+    }
     text = (f"σ {cfg.policy_noise:g}'s round {k} ({cfg.policy_out}) refined in σ "
-            f"{cfg.world_noise:g}'s world model of round {cfg.world_rounds} ({cfg.world_out}):"
+            f"{cfg.world_noise:g}'s {which[cfg.world_data]} ({cfg.world_out}):"
             f"\n\n{report(rows, pairs)}\n\nHow far refinement moved the plan, on the start's "
             f"recorded frames:\n\n{moves_table(rows)}")  # fmt: skip
     results = {"config": dataclasses.asdict(cfg), "rows": rows,

@@ -28,7 +28,8 @@ def _check_tree(root, sigma: float, rounds: int, seeds=(0,), tag_bytes=b""):
         facts = {"metrics": {"response_steering_risk": 0.1}, "counterfactual": {"rank_correlation":
                  0.2}, "data": {"train_frames": 100, "collision_frames": 6}}  # fmt: skip
         (world / "metrics.json").write_text(json.dumps(facts))
-        for run in (f"takeovers{rounds}", f"takeovers{rounds}-refined"):
+        for run in (f"takeovers{rounds}", f"il-equal-takeovers{rounds}",
+                    f"takeovers{rounds}-refined"):  # fmt: skip
             (runs / run).mkdir()
             laps = {"runs": [{"track": 100, "completion_ratio": 0.5, "collisions_per_min": 2.0,
                               "average_speed": 1.5}], "aggregate": {}}  # fmt: skip
@@ -75,20 +76,22 @@ def test_the_start_policy_is_refined_in_the_other_world_model_as_the_check_refin
     own_world = str(tmp_path / "half" / "runs" / "noise0.5-seed0" / "takeovers2-world-model")
     assert swap == [out if a.endswith("takeovers2-refined") else init if a == own_world else a
                     for a in own]  # fmt: skip
-    # the rows: the start and its own refinement as the check drove them, then the swap's laps
-    assert [r["model"] for r in rows] == [
-        "takeovers2", "takeovers2+refined", "takeovers2+refined-in-noise1"]  # fmt: skip
+    # the rows: the start, IL at its frames and its own refinement as the check drove them,
+    # then the swap's laps
+    models = ["takeovers2", "IL-equal-takeovers2", "takeovers2+refined",
+              "takeovers2+refined-in-noise1"]  # fmt: skip
+    assert [r["model"] for r in rows] == models
     assert rows[0]["runs"][0]["completion_ratio"] == 0.5
-    assert rows[2]["runs"] == driven["runs"] and rows[2]["aggregate"] == {"n": 1}
+    assert rows[3]["runs"] == driven["runs"] and rows[3]["aggregate"] == {"n": 1}
     # the swapped row says which world model it ran in and what that one is
-    facts = rows[2]["world_model"]
+    facts = rows[3]["world_model"]
     assert facts["run"] == str(
         tmp_path / "one" / "runs" / "noise1-seed0" / "takeovers2-world-model"
     )
     assert (facts["train_frames"], facts["collision_frames"]) == (100, 6)
     assert facts["response_steering_risk"] == 0.1
     assert facts["counterfactual"] == {"rank_correlation": 0.2}
-    assert "world_model" not in rows[0] and "world_model" not in rows[1]
+    assert not any("world_model" in row for row in rows[:3])
 
 
 def test_the_swapped_rows_are_paired_with_the_start_and_its_own_refinement(tmp_path):
