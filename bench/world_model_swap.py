@@ -25,7 +25,9 @@ run, training frames and collision frames, its counterfactual check and its resp
 steering, from its metrics.json). `unc=true` adds the paper's -unc ablation in the other world
 model; `world_data=demos` or `rounds` learns the other world model here anew, by the check's own
 command from the same round's run (takeover_refine.world_model_cmd), on only the other check's
-demonstrations or only its take-over rounds. OUT/results-swap.json and OUT/table-swap.md.
+demonstrations or only its take-over rounds. Written: OUT/results-swap-noise<σ>-refined-in-
+noise<σ'>[-<data>].json and the matching table-….md (a file per swap: one OUT can hold several
+swaps that share the world models learnt there).
 """
 
 from __future__ import annotations
@@ -286,9 +288,11 @@ def main(argv: list[str] | None = None) -> int:
             f"recorded frames:\n\n{moves_table(rows)}")  # fmt: skip
     results = {"config": dataclasses.asdict(cfg), "rows": rows,
                "wall_s": time.monotonic() - started, "environment": environment()}  # fmt: skip
-    (out / "results-swap.json").write_text(json.dumps(results, indent=1) + "\n")
-    (out / "table-swap.md").write_text(text + "\n")
-    print("\n" + text + f"\n\nwritten: {out}/results-swap.json, {out}/table-swap.md")
+    # one OUT may hold several swaps sharing world models learnt anew: a file per swap
+    name = f"swap-noise{cfg.policy_noise:g}-{other_name(cfg)}"
+    (out / f"results-{name}.json").write_text(json.dumps(results, indent=1) + "\n")
+    (out / f"table-{name}.md").write_text(text + "\n")
+    print("\n" + text + f"\n\nwritten: {out}/results-{name}.json, {out}/table-{name}.md")
     return 0
 
 
