@@ -72,8 +72,7 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
     study, k = cfg.study, cfg.rounds
     runs, world = Path(cfg.out) / "runs" / tag, world_model_run(cfg, tag, source)
     prefix = f"takeovers{k}-{source}-" if source else f"takeovers{k}-"
-    takeovers = cfg.takeovers_as_collisions and source in ("", "drives")
-    labels = f"takeovers_as_collisions={str(takeovers).lower()}"
+    labels = collision_labels(cfg.takeovers_as_collisions and source in ("", "drives"))
 
     def learn(run: Path, extra: list[str]) -> list[str]:
         return world_model_cmd(study, world_data or data, run, last, seed, labels, extra)
@@ -94,6 +93,12 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
             drift(step, tag, run, world, members)
         out[f"takeovers{k}+{source + '+' if source else ''}{name}"] = (run, frames)
     return out
+
+
+def collision_labels(takeovers: bool) -> str:
+    """The iterate.py setting saying whether the 0.5 s before each take-over is labelled a
+    collision (IterateConfig.takeovers_as_collisions) in a world model's or refinement's frames."""
+    return f"takeovers_as_collisions={str(takeovers).lower()}"
 
 
 def world_model_cmd(study: StudyConfig, data: list[Path], run: Path, last: Path, seed: int,

@@ -47,7 +47,7 @@ from bench.dirl_steps import ROOT, evaluate
 from bench.provenance import environment
 from bench.study_config import StudyConfig
 from bench.study_steps import StudyStep, finished_steps, output_of, run_chains, step_kind
-from bench.takeover_refine import refine_cmd, world_model_cmd
+from bench.takeover_refine import collision_labels, refine_cmd, world_model_cmd
 
 
 @dataclass
@@ -89,6 +89,7 @@ class Chain:
     world: Path
     data: list[Path]
     start_eval: Path
+    il_equal_eval: Path
     own_refined_eval: Path
     world_from: Path | None = None
     world_episodes: tuple[Path, ...] = ()
@@ -121,7 +122,8 @@ def chain_paths(cfg: SwapConfig, seed: int) -> Chain:
     result = f"eval{suffix(cfg)}.json"
     return Chain(f"noise{cfg.policy_noise:g}-seed{seed}", mine / f"takeovers{k}-world-model",
                  world, [demos, *rounds], mine / f"takeovers{k}" / result,
-                 mine / f"takeovers{k}-refined" / result, world_from, world_episodes)  # fmt: skip
+                 mine / f"il-equal-takeovers{k}" / result, mine / f"takeovers{k}-refined" / result,
+                 world_from, world_episodes)  # fmt: skip
 
 
 def missing_inputs(cfg: SwapConfig) -> list[str]:
@@ -157,23 +159,28 @@ def compose(start: Path, world: Path, into: Path) -> Path:
     return into
 
 
-def plan_moves(start: Path, refined: Path, episodes: list[Path]) -> dict:
-    """How far refinement moved the plan on the start's recorded frames (null_candidates'
-    measure: mean |Δμ| by channel and the signed throttle shift)."""
+def plan_mover(start: Path, episodes: list[Path]):
+    """How far refinement moved the start's plan, as a function of a refined checkpoint:
+    null_candidates' measure (mean |Δμ| by channel and the signed throttle shift) on the start's
+    recorded frames, which are sampled and planned by the start once."""
     from bench.null_candidates import FRAMES, plan, plan_move, throttle_shift
     from export.parity import sample_frames
     from training import checkpoint as ck
 
     frames = sample_frames([str(e) for e in episodes], max_frames=FRAMES)
     before = plan(ck.load_policy(start)[0], frames)
-    after = plan(ck.load_policy(refined)[0], frames)
-    return plan_move(after, before) | {"throttle_signed": throttle_shift(after, before)}
+
+    def moved(refined: Path) -> dict:
+        after = plan(ck.load_policy(refined)[0], frames)
+        return plan_move(after, before) | {"throttle_signed": throttle_shift(after, before)}
+
+    return moved
 
 
 def chain(cfg: SwapConfig, step: StudyStep, seed: int, rows: list[dict]) -> None:
     c, k = chain_paths(cfg, seed), cfg.policy_rounds
     runs = Path(cfg.out) / "runs" / c.tag
-    labels = f"takeovers_as_collisions={str(cfg.takeovers_as_collisions).lower()}"
+    labels = collision_labels(cfg.takeovers_as_collisions)
     if c.world_from is not None:  # the other world model, learnt here on part of its data
         argv = world_model_cmd(cfg.study, list(c.world_episodes), c.world, c.world_from, seed,
                                labels)  # fmt: skip
@@ -181,8 +188,7 @@ def chain(cfg: SwapConfig, step: StudyStep, seed: int, rows: list[dict]) -> None
         if not (c.world / "world_model.pt").is_file():  # a resumed run's count stops here
             return
     init = compose(c.start, c.world, runs / f"takeovers{k}-{other_name(cfg)}-init")
-    il_equal = c.start_eval.parent.with_name(f"il-equal-takeovers{k}") / c.start_eval.name
-    evaluated = [(f"takeovers{k}", c.start_eval), (f"IL-equal-takeovers{k}", il_equal),
+    evaluated = [(f"takeovers{k}", c.start_eval), (f"IL-equal-takeovers{k}", c.il_equal_eval),
                  (f"takeovers{k}+refined", c.own_refined_eval)]  # fmt: skip
     driven = {}
     for name, flags in variants(cfg):
@@ -194,6 +200,7 @@ def chain(cfg: SwapConfig, step: StudyStep, seed: int, rows: list[dict]) -> None
                                   run / "policy.onnx", result)  # fmt: skip
         evaluated.append((model, result))
     counting = getattr(step, "counting", False)  # a resumed run's count: rows thrown away
+    mover = None
     for name, out in evaluated:
         driving = driven.get(out) or (output_of(step, out) if out.is_file() else None)
         if not driving:
@@ -201,7 +208,8 @@ def chain(cfg: SwapConfig, step: StudyStep, seed: int, rows: list[dict]) -> None
         refined = out.parent / "policy.pt"
         moved = None
         if "+" in name and not counting and refined.is_file():
-            moved = plan_moves(c.start / "policy.pt", refined, c.data)
+            mover = mover or plan_mover(c.start / "policy.pt", c.data)
+            moved = mover(refined)
         row = {"model": name, "seed": seed, "run": str(out.parent), "moved": moved,
                "aggregate": driving.get("aggregate"), "runs": driving.get("runs", [])}  # fmt: skip
         rows.append(row | ({"world_model": world_model_facts(c.world)} if out in driven else {}))
