@@ -39,7 +39,9 @@ counts its e-stops: IterateConfig.takeovers_as_collisions) and its check runs on
 placements 200-204; the policy is refined in it with the study's gradient and safeguards
 ("takeovers<k>+refined") and without the uncertainty term ("takeovers<k>+refined-unc", the
 paper's ablation), on the same frames as the round; `refine_paper_form` adds the paper's
-form (no safeguards) ± unc, `refine_with_drives` a world model that also learns the last
+form (no safeguards) ± unc, `refine_in_demos` a world model of the demonstrations alone
+("takeovers<k>+demos+refined", still refined on every frame), `refine_with_drives` a world
+model that also learns the last
 policy's exploration drives, `refine_crashes_only` one more on those frames without the
 take-over labels; `refine_drift` asks of every refined policy how far refinement moved its
 plan and whether the world model's uncertainty rose there (carrt-refine-drift), and
@@ -105,6 +107,11 @@ class TakeoverConfig:
     # without its uncertainty term (no anchor, no imitation term, uncentred gradient, raw p̂):
     # the setting of the paper's Table II, where the term is what keeps the policy safe
     refine_paper_form: bool = False
+    # with refine: also a world model of the demonstrations alone (source "demos": the person's
+    # own recordings, imperfect at σ > 0) and the same refinements in it, still from every
+    # frame. Measured (docs/dirl_study.md, "which data"): σ 0.5's demonstrations held 6 %
+    # collision frames and the steering response the rounds' world models lacked
+    refine_in_demos: bool = False
     # with refine: also a second world model that learns the last round's policy's exploration
     # drives too (`sim_data drives --explore`, the last round's placements, the study's
     # drive_seconds: crashes from varied actions, as the study's world models had), and the same
@@ -227,9 +234,11 @@ def pairs(cfg: TakeoverConfig) -> list[tuple[str, str]]:
         equal = equal_at(cfg, k)
         for source in sources(cfg):
             head = f"takeovers{k}+{source + '+' if source else ''}"
+            same = source in ("", "demos")  # refined on the round's frames alone: IL's count
             for name in forms(cfg, source):
                 out += [(head + name, f"takeovers{k}")]
-                out += [(head + name, f"IL-equal-takeovers{k}")] if not source and equal else []
+                out += [(head + name, f"IL-equal-takeovers{k}")] if same and equal else []
+                out += [(head + name, f"takeovers{k}+{name}")] if source == "demos" else []
             out += [(head + name, f"{head}{name}-unc") for name in forms(cfg, source)[::2]]
     return out
 
@@ -246,6 +255,7 @@ def parse(argv: list[str] | None) -> TakeoverConfig:
     if cfg.robustness_rounds < 0:
         p.error(f"robustness_rounds: {cfg.robustness_rounds} (0: as rounds, or 1 or more)")
     needs = [("refine_paper_form", "refine"), ("refine_with_drives", "refine"),
+             ("refine_in_demos", "refine"),
              ("refine_crashes_only", "refine_with_drives"), ("refine_drift", "refine"),
              ("drift_members", "refine_drift"), ("drift_members", "refine_crashes_only"),
              ("more_drive_tracks", "refine_crashes_only")]  # fmt: skip

@@ -31,9 +31,10 @@ PAPER_CORRECTED = [*PAPER_FORM, "--set", "collision_prior_correction=true"]
 
 
 def world_model_run(cfg: TakeoverConfig, tag: str, source: str = "") -> Path:
-    """The run whose world model learnt every frame up to the last round (`refine`), and the
-    last round's exploration drives with source "drives" (`refine_with_drives`), without the
-    take-over labels with "drives-crashes-only" (`refine_crashes_only`)."""
+    """The run whose world model learnt every frame up to the last round (`refine`), the
+    demonstrations alone with source "demos" (`refine_in_demos`), and the last round's
+    exploration drives too with "drives" (`refine_with_drives`), without the take-over labels
+    with "drives-crashes-only" (`refine_crashes_only`)."""
     name = "-".join(x for x in (f"takeovers{cfg.rounds}", source, "world-model") if x)
     return Path(cfg.out) / "runs" / tag / name
 
@@ -45,6 +46,8 @@ def refined(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data: lis
     `refine_with_drives`, the same in a world model that also learnt the last policy's
     exploration drives."""
     out = refinements(cfg, step, tag, seed, data, last, frames, "")
+    if cfg.refine_in_demos:  # the world model of the demonstrations (data[0]) alone
+        out |= refinements(cfg, step, tag, seed, data, last, frames, "demos", world_data=data[:1])
     if not cfg.refine_with_drives:
         return out
     drives = exploration_drives(cfg.study, step, tag, cfg.rounds, last, kind="round-drives")
@@ -72,7 +75,7 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
     study, k = cfg.study, cfg.rounds
     runs, world = Path(cfg.out) / "runs" / tag, world_model_run(cfg, tag, source)
     prefix = f"takeovers{k}-{source}-" if source else f"takeovers{k}-"
-    labels = collision_labels(cfg.takeovers_as_collisions and source in ("", "drives"))
+    labels = collision_labels(cfg.takeovers_as_collisions and source in ("", "demos", "drives"))
 
     def learn(run: Path, extra: list[str]) -> list[str]:
         return world_model_cmd(study, world_data or data, run, last, seed, labels, extra)
@@ -136,7 +139,8 @@ def name_of(source: str) -> str:
 
 
 def sources(cfg: TakeoverConfig) -> list[str]:
-    """The world models refinement runs in: "" (the rounds' frames), "drives" (+ drives),
+    """The world models refinement runs in: "" (the rounds' frames), "demos" (the
+    demonstrations alone, `refine_in_demos`), "drives" (+ drives),
     "drives-crashes-only" (+ drives, take-overs not labelled collisions),
     "more-drives-crashes-only" (+ drives on `more_drive_tracks` too, crashes alone),
     "drives-only" (the exploration drives alone: measured on seed 0, the demonstrations' and
@@ -144,4 +148,5 @@ def sources(cfg: TakeoverConfig) -> list[str]:
     predict from the frame and ignore the steering)."""
     more = ["drives", *(["drives-crashes-only"] if cfg.refine_crashes_only else [])]
     more += ["more-drives-crashes-only", "drives-only"] if cfg.more_drive_tracks else []
-    return ["", *more] if cfg.refine_with_drives else [""]
+    first = ["", *(["demos"] if cfg.refine_in_demos else [])]
+    return [*first, *more] if cfg.refine_with_drives else first

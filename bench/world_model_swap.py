@@ -12,8 +12,9 @@ round's policy (`policy_out`, `policy_noise`, `policy_rounds`: bench/takeover_ch
 layout) is refined in ANOTHER check's world model of its last round's frames (`world_out`, …),
 everything else as that check's `refine` step ran it (bench/takeover_refine.refine_cmd: the
 study's safeguards, its steps, the same seed, the start policy's own frames for the imitation
-term and the start states), and driven on the test placements. With `world_*` equal to
-`policy_*` it remakes the check's own refined policy (the same weights: a check of the swap).
+term and the start states), and driven on the test placements (other `eval_tracks`, such as
+validation placements to choose a setting on, drive the check's own rows here too). With
+`world_*` equal to `policy_*` it remakes the check's own refined policy (the same weights).
 
 A world model learns only recorded episodes, so refining a policy in another chain's world
 model uses nothing a real car could not record. The rows: the start policy ("takeovers<k>"),
@@ -88,11 +89,16 @@ class Chain:
     start: Path
     world: Path
     data: list[Path]
-    start_eval: Path
-    il_equal_eval: Path
-    own_refined_eval: Path
+    start_run: Path  # the last round's policy as the check drove it
+    il_equal_run: Path
+    own_refined_run: Path
     world_from: Path | None = None
     world_episodes: tuple[Path, ...] = ()
+
+    def checks_rows(self, k: int) -> list[tuple[str, Path]]:
+        """(model, run) of the rows the check made: the start, IL at its frames, its refinement."""
+        return [(f"takeovers{k}", self.start_run), (f"IL-equal-takeovers{k}", self.il_equal_run),
+                (f"takeovers{k}+refined", self.own_refined_run)]  # fmt: skip
 
 
 WORLD_DATA = ("all", "demos", "rounds")
@@ -119,11 +125,9 @@ def chain_paths(cfg: SwapConfig, seed: int) -> Chain:
         world_episodes = tuple([their_demos] if cfg.world_data == "demos" else their_rounds)
         world_from = theirs / f"takeovers{kw}"
         world = runs(cfg.out, cfg.world_noise) / f"takeovers{kw}-{cfg.world_data}-world-model"
-    result = f"eval{suffix(cfg)}.json"
     return Chain(f"noise{cfg.policy_noise:g}-seed{seed}", mine / f"takeovers{k}-world-model",
-                 world, [demos, *rounds], mine / f"takeovers{k}" / result,
-                 mine / f"il-equal-takeovers{k}" / result, mine / f"takeovers{k}-refined" / result,
-                 world_from, world_episodes)  # fmt: skip
+                 world, [demos, *rounds], mine / f"takeovers{k}", mine / f"il-equal-takeovers{k}",
+                 mine / f"takeovers{k}-refined", world_from, world_episodes)  # fmt: skip
 
 
 def missing_inputs(cfg: SwapConfig) -> list[str]:
@@ -131,13 +135,21 @@ def missing_inputs(cfg: SwapConfig) -> list[str]:
     out = []
     for seed in cfg.seeds:
         c = chain_paths(cfg, seed)
-        needed = [c.start / "policy.pt", *c.data, c.start_eval]
+        needed = [c.start / "policy.pt", *c.data]
+        for _, run in c.checks_rows(cfg.policy_rounds):  # its laps there, or its policy
+            needed.append(checked(cfg, run) or run / "policy.onnx")
         if c.world_from is None:
             needed.append(c.world / "world_model.pt")
         else:
             needed += [c.world_from / "policy.pt", *c.world_episodes]
         out += [f"{p} does not exist (seed {seed})" for p in needed if not p.exists()]
     return out
+
+
+def checked(cfg: SwapConfig, run: Path) -> Path | None:
+    """The laps the check drove with `run`'s policy on eval_tracks, if it drove them there."""
+    result = run / f"eval{suffix(cfg)}.json"
+    return result if result.is_file() else None
 
 
 def other_name(cfg: SwapConfig, unc: bool = False) -> str:
@@ -188,9 +200,16 @@ def chain(cfg: SwapConfig, step: StudyStep, seed: int, rows: list[dict]) -> None
         if not (c.world / "world_model.pt").is_file():  # a resumed run's count stops here
             return
     init = compose(c.start, c.world, runs / f"takeovers{k}-{other_name(cfg)}-init")
-    evaluated = [(f"takeovers{k}", c.start_eval), (f"IL-equal-takeovers{k}", c.il_equal_eval),
-                 (f"takeovers{k}+refined", c.own_refined_eval)]  # fmt: skip
-    driven = {}
+    evaluated, driven = [], {}
+    for model, run in c.checks_rows(k):
+        result = checked(cfg, run)
+        if result is None:  # placements the check did not drive (validation): driven here
+            result = runs / run.name / f"eval{suffix(cfg)}.json"
+            result.parent.mkdir(parents=True, exist_ok=True)
+            driven[result] = evaluate(cfg.study, step, f"{c.tag}-{model}{suffix(cfg)}",
+                                      run / "policy.onnx", result)  # fmt: skip
+        evaluated.append((model, run, result))
+    swapped = set()
     for name, flags in variants(cfg):
         run, model = runs / f"takeovers{k}-{name}", f"takeovers{k}+{name}"
         argv = refine_cmd(cfg.study, c.data, run, init, seed, labels, flags)
@@ -198,21 +217,22 @@ def chain(cfg: SwapConfig, step: StudyStep, seed: int, rows: list[dict]) -> None
         result = run / f"eval{suffix(cfg)}.json"
         driven[result] = evaluate(cfg.study, step, f"{c.tag}-{model}{suffix(cfg)}",
                                   run / "policy.onnx", result)  # fmt: skip
-        evaluated.append((model, result))
+        evaluated.append((model, run, result))
+        swapped.add(result)
     counting = getattr(step, "counting", False)  # a resumed run's count: rows thrown away
     mover = None
-    for name, out in evaluated:
+    for name, run, out in evaluated:
         driving = driven.get(out) or (output_of(step, out) if out.is_file() else None)
         if not driving:
             continue
-        refined = out.parent / "policy.pt"
+        refined = run / "policy.pt"
         moved = None
         if "+" in name and not counting and refined.is_file():
             mover = mover or plan_mover(c.start / "policy.pt", c.data)
             moved = mover(refined)
-        row = {"model": name, "seed": seed, "run": str(out.parent), "moved": moved,
+        row = {"model": name, "seed": seed, "run": str(run), "moved": moved,
                "aggregate": driving.get("aggregate"), "runs": driving.get("runs", [])}  # fmt: skip
-        rows.append(row | ({"world_model": world_model_facts(c.world)} if out in driven else {}))
+        rows.append(row | ({"world_model": world_model_facts(c.world)} if out in swapped else {}))
 
 
 def world_model_facts(run: Path) -> dict | None:
@@ -268,7 +288,9 @@ def main(argv: list[str] | None = None) -> int:
     k = cfg.policy_rounds
     trains = [step_kind(f"train-noise0-seed0-takeovers{k}-{name}") for name, _ in variants(cfg)]
     kinds = Counter({kind: len(cfg.seeds) for kind in trains})
-    kinds["eval"] = len(variants(cfg)) * len(cfg.seeds)
+    undriven = sum(checked(cfg, run) is None for seed in cfg.seeds
+                   for _, run in chain_paths(cfg, seed).checks_rows(k))  # fmt: skip
+    kinds["eval"] = len(variants(cfg)) * len(cfg.seeds) + undriven
     if cfg.world_data != "all":
         learnt = f"train-noise0-seed0-takeovers{cfg.world_rounds}-{cfg.world_data}-world-model"
         kinds[step_kind(learnt)] = len(cfg.seeds)

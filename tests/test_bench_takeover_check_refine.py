@@ -298,3 +298,46 @@ def test_the_drift_table_reports_the_move_and_the_spread_over_seeds():
     assert len(table) == 3 and table[2].startswith("| takeovers3+paper | 2 | 0.400 ± 0.100 |")
     assert "| 0.40 → 0.60 | 1.00 → 1.00 |" in table[2]
     assert drift_steps.drift_table(rows[2:]) == ""
+
+
+def test_refine_in_demos_adds_a_world_model_of_the_demonstrations_alone(monkeypatch, tmp_path):
+    runs, data = tmp_path / "runs" / "noise1-seed0", tmp_path / "data"
+    for name in ("takeovers2-world-model", "takeovers2-demos-world-model"):
+        (runs / name).mkdir(parents=True)
+        (runs / name / "metrics.json").write_text(json.dumps({"counterfactual": {"of": name}}))
+    sets = ["--set", "rounds=2", "--set", "refine=true", "--set", "refine_in_demos=true",
+            "--set", "demo_noise=1"]  # fmt: skip
+    argv, rows = _chain(monkeypatch, tmp_path, *sets, sigma=1.0)
+    demos_world = argv["train-noise1-seed0-takeovers2-demos-world-model"]
+    # the person's demonstrations alone, from the last round's policy, labelled as the others
+    episodes = demos_world[demos_world.index("--episodes") + 1 : demos_world.index("--out")]
+    assert episodes == [str(data / "expert-noise1")]
+    assert demos_world[demos_world.index("--init") + 1] == str(runs / "takeovers2")
+    assert "takeovers_as_collisions=true" in demos_world
+    # the same refinements in it, still from every frame so far
+    plain = argv["train-noise1-seed0-takeovers2-refined"]
+    refined = argv["train-noise1-seed0-takeovers2-demos-refined"]
+    assert refined[refined.index("--init") + 1] == str(runs / "takeovers2-demos-world-model")
+    assert refined == [
+        str(runs / "takeovers2-demos-world-model") if a == str(runs / "takeovers2-world-model")
+        else a.replace("takeovers2-refined", "takeovers2-demos-refined") for a in plain
+    ]  # fmt: skip
+    assert "--no-uncertainty" in argv["train-noise1-seed0-takeovers2-demos-refined-unc"]
+    by_model = {r["model"]: r for r in rows}
+    assert by_model["takeovers2+demos+refined"]["frames"] == by_model["takeovers2"]["frames"]
+    assert by_model["takeovers2+demos+refined"]["counterfactual"] == {
+        "of": "takeovers2-demos-world-model"
+    }
+    pairs = takeover_check.pairs(takeover_check.parse(sets))
+    for base in ("takeovers2", "IL-equal-takeovers2", "takeovers2+refined",
+                 "takeovers2+demos+refined-unc"):  # fmt: skip
+        assert ("takeovers2+demos+refined", base) in pairs
+    plan = takeover_check.plan(takeover_check.parse(sets))
+    assert plan["train takeovers2-demos-world-model"] == 3  # one per seed
+
+
+def test_refine_in_demos_needs_refine(capsys):
+    with pytest.raises(SystemExit) as stop:
+        takeover_check.parse(["--set", "refine_in_demos=true"])
+    assert stop.value.code == 2
+    assert "refine_in_demos: True needs refine=true" in capsys.readouterr().err

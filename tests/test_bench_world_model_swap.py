@@ -176,3 +176,46 @@ def test_world_data_learns_the_other_world_model_anew_on_part_of_its_frames(
     init = refine[refine.index("--init") + 1]
     assert (tmp_path / init / "world_model.pt").read_bytes() == b"learnt on " + part.encode()
     assert (tmp_path / init / "policy.pt").read_bytes() == b"policy of half"
+
+
+def test_placements_the_check_did_not_drive_drive_its_own_rows_here_too(
+    monkeypatch, tmp_path, capsys
+):
+    half = tmp_path / "half" / "runs" / "noise0.5-seed0"
+    # validation placements the check never drove: without its policies the swap refuses
+    with pytest.raises(SystemExit) as stop:
+        _swap_cfg(tmp_path, "--set", "eval_tracks=200-201")
+    assert stop.value.code == 2
+    assert "takeovers2/policy.onnx does not exist" in capsys.readouterr().err
+    for run in ("takeovers2", "il-equal-takeovers2", "takeovers2-refined"):
+        (half / run / "policy.onnx").write_bytes(b"onnx of " + run.encode())
+    # the check drove its refinement there once already: those laps are read, not driven again
+    mine = {"runs": [{"track": 200, "completion_ratio": 0.9}], "aggregate": {}}
+    (half / "takeovers2-refined" / "eval-200-201.json").write_text(json.dumps(mine))
+    cfg = world_model_swap.parse(
+        ["--set", f"out={tmp_path / 'swap'}", "--set", f"policy_out={tmp_path / 'half'}",
+         "--set", "policy_noise=0.5", "--set", f"world_out={tmp_path / 'one'}",
+         "--set", "world_noise=1", "--set", "seeds=0", "--set", "eval_tracks=200-201"]
+    )  # fmt: skip
+    driven, rows = [], []
+
+    def evaluate(study, step, name, onnx, result):
+        driven.append((name, onnx.read_bytes() if onnx.is_file() else None, result))
+        return {"runs": [{"track": 200, "completion_ratio": 0.1 * len(driven)}], "aggregate": {}}
+
+    monkeypatch.setattr(world_model_swap, "evaluate", evaluate)
+    world_model_swap.chain(cfg, lambda name, argv, marker: None, 0, rows)
+    swap_runs = tmp_path / "swap" / "runs" / "noise0.5-seed0"
+    assert [(n, o) for n, o, _ in driven[:2]] == [
+        ("noise0.5-seed0-takeovers2-200-201", b"onnx of takeovers2"),
+        ("noise0.5-seed0-IL-equal-takeovers2-200-201", b"onnx of il-equal-takeovers2"),
+    ]
+    # written into the swap's own OUT, never into the check's
+    assert driven[0][2] == swap_runs / "takeovers2" / "eval-200-201.json"
+    assert len(driven) == 3 and driven[2][0].endswith("refined-in-noise1-200-201")
+    by_model = {r["model"]: r for r in rows}
+    assert by_model["takeovers2+refined"]["runs"] == mine["runs"]
+    assert by_model["takeovers2"]["runs"][0]["completion_ratio"] == 0.1
+    assert by_model["takeovers2"]["run"] == str(half / "takeovers2")
+    assert "world_model" in by_model["takeovers2+refined-in-noise1"]
+    assert not any("world_model" in by_model[m] for m in ("takeovers2", "IL-equal-takeovers2"))
