@@ -27,8 +27,8 @@ steering, from its metrics.json). `unc=true` adds the paper's -unc ablation in t
 model; `world_data=demos` or `rounds` learns the other world model here anew, by the check's own
 command from the same round's run (takeover_refine.world_model_cmd), on only the other check's
 demonstrations or only its take-over rounds. Written: OUT/results-swap-noise<σ>-refined-in-
-noise<σ'>[-<data>].json and the matching table-….md (a file per swap: one OUT can hold several
-swaps that share the world models learnt there).
+noise<σ'>[-<data>][-<eval_tracks>].json and the matching table-….md (a file per swap and set of
+placements: one OUT can hold several swaps that share the world models learnt there).
 """
 
 from __future__ import annotations
@@ -268,6 +268,12 @@ def parse(argv: list[str] | None) -> SwapConfig:
     return cfg
 
 
+def results_name(cfg: SwapConfig) -> str:
+    """The swap's files' name: one OUT may hold several swaps sharing the world models learnt
+    there, each driven on several sets of placements (test, validation), a file for each."""
+    return f"swap-noise{cfg.policy_noise:g}-{other_name(cfg)}{suffix(cfg)}"
+
+
 def moves_table(rows: list[dict]) -> str:
     """Markdown: per refined model, the plan's move on the start's frames, mean over seeds."""
     lines = ["| refined model | seeds | \\|Δ steering\\| | \\|Δ throttle\\| "
@@ -318,8 +324,7 @@ def main(argv: list[str] | None = None) -> int:
             f"recorded frames:\n\n{moves_table(rows)}")  # fmt: skip
     results = {"config": dataclasses.asdict(cfg), "rows": rows,
                "wall_s": time.monotonic() - started, "environment": environment()}  # fmt: skip
-    # one OUT may hold several swaps sharing world models learnt anew: a file per swap
-    name = f"swap-noise{cfg.policy_noise:g}-{other_name(cfg)}"
+    name = results_name(cfg)
     (out / f"results-{name}.json").write_text(json.dumps(results, indent=1) + "\n")
     (out / f"table-{name}.md").write_text(text + "\n")
     print("\n" + text + f"\n\nwritten: {out}/results-{name}.json, {out}/table-{name}.md")

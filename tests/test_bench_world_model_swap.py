@@ -5,6 +5,7 @@ changed, and its one-line refusals."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -219,3 +220,13 @@ def test_placements_the_check_did_not_drive_drive_its_own_rows_here_too(
     assert by_model["takeovers2"]["run"] == str(half / "takeovers2")
     assert "world_model" in by_model["takeovers2+refined-in-noise1"]
     assert not any("world_model" in by_model[m] for m in ("takeovers2", "IL-equal-takeovers2"))
+
+
+def test_each_swap_and_set_of_placements_gets_its_own_results_file(tmp_path):
+    demos = _swap_cfg(tmp_path / "demos", "--set", "world_data=demos")
+    cfgs = [_swap_cfg(tmp_path / "all"), _swap_cfg(tmp_path / "unc", "--set", "unc=true"), demos,
+            dataclasses.replace(demos, eval_tracks="200-259")]  # fmt: skip
+    assert [world_model_swap.results_name(c) for c in cfgs] == [
+        "swap-noise0.5-refined-in-noise1", "swap-noise0.5-refined-in-noise1",
+        "swap-noise0.5-refined-in-noise1-demos", "swap-noise0.5-refined-in-noise1-demos-200-259"
+    ]  # fmt: skip
