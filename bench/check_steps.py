@@ -118,14 +118,16 @@ def read_sets(argv: list[str] | None, cfg, module: str, doc: str, name: str):
         p.error(str(exc))
 
 
-def run_check(cfg, kinds: dict[str, int], chain_fn, extra: bool = True) -> list[dict]:
-    """A check's steps: each σ's demonstrations (and the second pool with `extra`), then
+def run_check(cfg, kinds: dict[str, int], chain_fn, extra: bool = True,
+              also: tuple[float, ...] = ()) -> list[dict]:  # fmt: skip
+    """A check's steps: each σ's demonstrations (and the second pool with `extra`; `also`: more
+    σs' demonstrations, every_noise_demonstrations'), then
     `chain_fn(cfg, step, σ, seed, rows)` for every σ and seed side by side. The steps an earlier
     invocation finished are counted first (the chains walked with nothing run, as the study
     does), so the ETA leaves them out instead of guessing them at a typical time."""
 
     def walk(step: StudyStep) -> list[dict]:
-        every_noise_demonstrations(cfg.study, step, extra)  # passed while counting
+        every_noise_demonstrations(cfg.study, step, extra, also)  # passed while counting
         return run_chains([functools.partial(chain_fn, cfg, step, sigma, s)
                            for sigma in cfg.demo_noise for s in cfg.seeds])[0]  # fmt: skip
 

@@ -142,15 +142,17 @@ def demonstrations(cfg: StudyConfig, step: StudyStep, sigma: float, tracks: str,
     return data
 
 
-def every_noise_demonstrations(cfg: StudyConfig, step: StudyStep, extra: bool = True) -> list[str]:
+def every_noise_demonstrations(cfg: StudyConfig, step: StudyStep, extra: bool = True,
+                               also: tuple[float, ...] = ()) -> list[str]:  # fmt: skip
     """Each σ's demonstrations on the training placements (and, with `extra`, the second pool
-    IL at equal frames draws from): first, each with all `jobs`, since every chain needs them.
+    IL at equal frames draws from): first, each with all `jobs`, since every chain needs them;
+    `also`: more σs recorded on the training placements alone (a world model's, no chain's).
     Returns the steps not finished when only counting or reporting (NotRun)."""
     missing = []
-    for sigma in cfg.demo_noise:
+    for sigma in (*cfg.demo_noise, *also):
         try:
             demonstrations(cfg, step, sigma, cfg.train_tracks, "expert")
-            if extra:
+            if extra and sigma in cfg.demo_noise:
                 demonstrations(cfg, step, sigma, cfg.extra_tracks, "extra")
         except NotRun as exc:
             missing.append(str(exc))

@@ -112,6 +112,12 @@ class TakeoverConfig:
     # frame. Measured (docs/dirl_study.md, "which data"): σ 0.5's demonstrations held 6 %
     # collision frames and the steering response the rounds' world models lacked
     refine_in_demos: bool = False
+    # with refine_in_demos: the σ of the demonstrations that world model learns; −1: the chain's
+    # own. Another σ's (e.g. 0.5 for σ 0: a sloppier person's drives kept for the world model,
+    # which on validation placements helped σ 0's round 3) are recorded as the check records its
+    # own (data/expert-noise<σ'>); their frames count toward the refined rows, and IL at as many
+    # frames trains too ("IL-equal-takeovers<k>-demos", the refined rows' pair)
+    refine_demos_noise: float = -1.0
     # with refine: also a second world model that learns the last round's policy's exploration
     # drives too (`sim_data drives --explore`, the last round's placements, the study's
     # drive_seconds: crashes from varied actions, as the study's world models had), and the same
@@ -180,7 +186,15 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
         )
         models[f"IL-equal-takeovers{k}"] = (il_eq, frames_in(equal))
     if cfg.refine:
-        models.update(refined(cfg, step, tag, seed, data, previous, frames))
+        world_demos = expert.with_name(f"expert-noise{demos_noise(cfg, sigma):g}")
+        more = frames_in([world_demos]) if world_demos != expert and cfg.refine_in_demos else 0
+        models.update(refined(cfg, step, tag, seed, data, previous, frames, world_demos, more))
+        if more:  # IL on as many frames as the world model's refinement saw
+            equal = il_equal_data(expert, extra, expert_frames, frames + more)
+            il_eq = runs / f"il-equal-takeovers{cfg.rounds}-demos"
+            step(f"train-{tag}-{il_eq.name}", iterate_cmd(study, equal, il_eq,
+                 *imitation_flags(study, seed)), il_eq / ".done")  # fmt: skip
+            models[f"IL-equal-takeovers{cfg.rounds}-demos"] = (il_eq, frames_in(equal))
     # driven last trained first, so a check stopped part way (a lent GPU's minutes) has its
     # last round and its IL at equal frames; the rows keep the training order
     mine = []
@@ -215,15 +229,21 @@ def for_noise(cfg: TakeoverConfig, sigma: float) -> TakeoverConfig:
     return dataclasses.replace(cfg, rounds=k, il_equal_at=(k,), refine=False)
 
 
+def demos_noise(cfg: TakeoverConfig, sigma: float) -> float:
+    """The σ of the demonstrations the demonstrations' world model learns (refine_in_demos)."""
+    return sigma if cfg.refine_demos_noise < 0 else cfg.refine_demos_noise
+
+
 def equal_at(cfg: TakeoverConfig, k: int) -> bool:
     """Whether IL at equal frames trains at round k (`il_equal_at`; empty: every round)."""
     return not cfg.il_equal_at or k in cfg.il_equal_at
 
 
-def pairs(cfg: TakeoverConfig) -> list[tuple[str, str]]:
+def pairs(cfg: TakeoverConfig, sigma: float = 0.0) -> list[tuple[str, str]]:
     """Each round against IL at its frames, IL on the demonstrations and the round before;
     with `refine`, the refined policies against the round they started from, IL at its frames
-    and each other."""
+    (at σ `sigma`'s, with another σ's demonstrations' world model, at its frames too) and each
+    other."""
     out = []
     for k in range(1, cfg.rounds + 1):
         out += [(f"takeovers{k}", f"IL-equal-takeovers{k}")] if equal_at(cfg, k) else []
@@ -234,11 +254,14 @@ def pairs(cfg: TakeoverConfig) -> list[tuple[str, str]]:
         equal = equal_at(cfg, k)
         for source in sources(cfg):
             head = f"takeovers{k}+{source + '+' if source else ''}"
-            same = source in ("", "demos")  # refined on the round's frames alone: IL's count
+            own = source == "demos" and demos_noise(cfg, sigma) == sigma
+            same = source == "" or own  # refined on the round's frames alone: IL's count
             for name in forms(cfg, source):
                 out += [(head + name, f"takeovers{k}")]
                 out += [(head + name, f"IL-equal-takeovers{k}")] if same and equal else []
                 out += [(head + name, f"takeovers{k}+{name}")] if source == "demos" else []
+                other = source == "demos" and not same  # another σ's: IL at its count
+                out += [(head + name, f"IL-equal-takeovers{k}-demos")] if other else []
             out += [(head + name, f"{head}{name}-unc") for name in forms(cfg, source)[::2]]
     return out
 
@@ -267,6 +290,10 @@ def parse(argv: list[str] | None) -> TakeoverConfig:
         if wanted not in names:
             p.error(f"paper_corrected_in: {wanted!r} is not one of this check's world models "
                     f"({', '.join(names) or 'none without refine=true'})")  # fmt: skip
+    if cfg.refine_demos_noise != -1 and not cfg.refine_in_demos:
+        p.error(f"refine_demos_noise: {cfg.refine_demos_noise:g} needs refine_in_demos=true")
+    if cfg.refine_demos_noise != -1 and not 0 <= cfg.refine_demos_noise <= 2:
+        p.error(f"refine_demos_noise: {cfg.refine_demos_noise:g} (0 to 2, or -1: the chain's own)")
     if not 0 <= cfg.drift_members <= 16:
         p.error(f"drift_members: {cfg.drift_members} (0 to 16)")
     if any(not 1 <= k <= cfg.rounds for k in cfg.il_equal_at):
@@ -276,9 +303,16 @@ def parse(argv: list[str] | None) -> TakeoverConfig:
     return dataclasses.replace(cfg, study=study_for(p, cfg))
 
 
+def world_demos_only(cfg: TakeoverConfig) -> tuple[float, ...]:
+    """The σs whose demonstrations only a world model learns (refine_demos_noise), recorded too."""
+    wanted = {demos_noise(for_noise(cfg, s), s) for s in cfg.demo_noise
+              if for_noise(cfg, s).refine and cfg.refine_in_demos}  # fmt: skip
+    return tuple(sorted(wanted - set(cfg.demo_noise)))
+
+
 def plan(cfg: TakeoverConfig) -> Counter[str]:
     """The check's steps by kind (the progress count and the ETA's weights)."""
-    kinds = Counter({"demos": 2 * len(cfg.demo_noise)})
+    kinds = Counter({"demos": 2 * len(cfg.demo_noise) + len(world_demos_only(cfg))})
     for sigma in cfg.demo_noise:
         mine, n = for_noise(cfg, sigma), len(cfg.seeds)
         r = mine.rounds
@@ -296,6 +330,8 @@ def plan(cfg: TakeoverConfig) -> Counter[str]:
             {"drive": n * (1 + bool(mine.more_drive_tracks))} if mine.refine_with_drives else {}
         )
         kinds += {"drift": refined_rows * n} if mine.refine_drift else {}
+        if mine.refine_in_demos and demos_noise(mine, sigma) != sigma:
+            kinds += {f"train il-equal-takeovers{r}-demos": n, "eval": n}
         if mine.drift_members:
             kinds += {f"train takeovers{r}-drives-crashes-only-member": mine.drift_members * n}
     return +kinds
@@ -306,14 +342,15 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    rows = run_check(cfg, dict(plan(cfg)), chain)
+    rows = run_check(cfg, dict(plan(cfg)), chain, also=world_demos_only(cfg))
     name = f"takeovers{suffix(cfg)}-noise{'_'.join(f'{x:g}' for x in cfg.demo_noise)}"
     figure = out / f"completion_vs_frames-{name}.png"
     refined = ", the last refined in world models" if cfg.refine else ""
     plot(rows, figure, f"IL and rounds of take-overs{refined}, mean ± std over seeds")
 
     def pairs_of(mine: list[dict]) -> list[tuple[str, str]]:
-        return pairs(for_noise(cfg, mine[0]["demo_noise"])) if mine else []
+        sigma = mine[0]["demo_noise"] if mine else 0.0
+        return pairs(for_noise(cfg, sigma), sigma) if mine else []
 
     text = write_results(cfg, rows, started, f"-{name}", pairs_of)
     moves = drift_table(rows)

@@ -40,14 +40,17 @@ def world_model_run(cfg: TakeoverConfig, tag: str, source: str = "") -> Path:
 
 
 def refined(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data: list[Path],
-            last: Path, frames: int) -> dict[str, tuple[Path, int]]:  # fmt: skip
+            last: Path, frames: int, world_demos: Path,
+            more: int) -> dict[str, tuple[Path, int]]:  # fmt: skip
     """The last round's policy refined in a world model of every frame so far, with and
     without the uncertainty term (and in the paper's form): {row: (run, frames)}; with
-    `refine_with_drives`, the same in a world model that also learnt the last policy's
-    exploration drives."""
+    `refine_in_demos`, the same in a world model of the demonstrations `world_demos` alone
+    (`more` frames beyond `data`'s: another σ's); with `refine_with_drives`, in a world model
+    that also learnt the last policy's exploration drives."""
     out = refinements(cfg, step, tag, seed, data, last, frames, "")
-    if cfg.refine_in_demos:  # the world model of the demonstrations (data[0]) alone
-        out |= refinements(cfg, step, tag, seed, data, last, frames, "demos", world_data=data[:1])
+    if cfg.refine_in_demos:
+        out |= refinements(cfg, step, tag, seed, data, last, frames + more, "demos",
+                           world_data=[world_demos])  # fmt: skip
     if not cfg.refine_with_drives:
         return out
     drives = exploration_drives(cfg.study, step, tag, cfg.rounds, last, kind="round-drives")
