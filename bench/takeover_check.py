@@ -40,7 +40,8 @@ placements 200-204; the policy is refined in it with the study's gradient and sa
 ("takeovers<k>+refined") and without the uncertainty term ("takeovers<k>+refined-unc", the
 paper's ablation), on the same frames as the round; `refine_paper_form` adds the paper's
 form (no safeguards) ± unc, `refine_in_demos` a world model of the demonstrations alone
-("takeovers<k>+demos+refined", still refined on every frame), `refine_with_drives` a world
+("takeovers<k>+demos+refined", still refined on every frame; `refine_demos_noise=σ'` another
+σ's, paired with "IL-equal-takeovers<k>-demos" at as many frames), `refine_with_drives` a world
 model that also learns the last
 policy's exploration drives, `refine_crashes_only` one more on those frames without the
 take-over labels; `refine_drift` asks of every refined policy how far refinement moved its
