@@ -166,6 +166,14 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
     models = {"IL": (il, expert_frames)}
     data, frames, previous = [expert], expert_frames, il
     extra = Path(cfg.out) / "data" / f"extra-noise{sigma:g}"
+
+    def il_equal(name: str, at: int) -> None:
+        """IL on `at` frames: the demonstrations topped up from the second pool."""
+        equal, run = il_equal_data(expert, extra, expert_frames, at), runs / name.lower()
+        step(f"train-{tag}-{run.name}", iterate_cmd(study, equal, run,
+             *imitation_flags(study, seed)), run / ".done")  # fmt: skip
+        models[name] = (run, frames_in(equal))
+
     for k in range(1, cfg.rounds + 1):
         new = takeover_drives(study, step, tag, sigma, k, previous, cfg.round_seconds,
                               kind="rounds")  # fmt: skip
@@ -177,25 +185,13 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
         models[f"takeovers{k}"], previous = (run, frames), run
         if not equal_at(cfg, k):
             continue
-        # IL on as many frames: the demonstrations topped up from the second pool
-        equal = il_equal_data(expert, extra, expert_frames, frames)
-        il_eq = runs / f"il-equal-takeovers{k}"
-        step(
-            f"train-{tag}-il-equal-takeovers{k}",
-            iterate_cmd(study, equal, il_eq, *imitation_flags(study, seed)),
-            il_eq / ".done",
-        )
-        models[f"IL-equal-takeovers{k}"] = (il_eq, frames_in(equal))
+        il_equal(f"IL-equal-takeovers{k}", frames)
     if cfg.refine:
         world_demos = expert.with_name(f"expert-noise{demos_noise(cfg, sigma):g}")
         more = frames_in([world_demos]) if world_demos != expert and cfg.refine_in_demos else 0
         models.update(refined(cfg, step, tag, seed, data, previous, frames, world_demos, more))
         if more:  # IL on as many frames as the world model's refinement saw
-            equal = il_equal_data(expert, extra, expert_frames, frames + more)
-            il_eq = runs / f"il-equal-takeovers{cfg.rounds}-demos"
-            step(f"train-{tag}-{il_eq.name}", iterate_cmd(study, equal, il_eq,
-                 *imitation_flags(study, seed)), il_eq / ".done")  # fmt: skip
-            models[f"IL-equal-takeovers{cfg.rounds}-demos"] = (il_eq, frames_in(equal))
+            il_equal(f"IL-equal-takeovers{cfg.rounds}-demos", frames + more)
     # driven last trained first, so a check stopped part way (a lent GPU's minutes) has its
     # last round and its IL at equal frames; the rows keep the training order
     mine = []

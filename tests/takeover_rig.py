@@ -5,6 +5,8 @@ frames. The rounds' tests (test_bench_takeover_check.py) and the refinements' te
 
 from __future__ import annotations
 
+import json
+
 from bench import dirl_steps, takeover_check, takeover_refine
 
 
@@ -25,3 +27,13 @@ def record_chain(monkeypatch, tmp_path, *sets, sigma=0.0, seed=0):
         cfg, lambda name, argv, marker: steps.append((name, argv)), sigma, seed, rows
     )
     return dict(steps), rows
+
+
+def world_model_runs(runs, *names, counterfactual=lambda name: {"of": name}):
+    """The world-model run directories `names` under `runs`, each with a metrics.json holding its
+    counterfactual check (by default one naming the run, so a row shows which one it read)."""
+    for name in names:
+        (runs / name).mkdir(parents=True)
+        (runs / name / "metrics.json").write_text(
+            json.dumps({"counterfactual": counterfactual(name)})
+        )

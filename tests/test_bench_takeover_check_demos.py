@@ -6,19 +6,16 @@ world models)."""
 
 from __future__ import annotations
 
-import json
-
 import pytest
 from takeover_rig import record_chain as _chain
+from takeover_rig import world_model_runs
 
 from bench import dirl_steps, takeover_check
 
 
 def test_refine_in_demos_adds_a_world_model_of_the_demonstrations_alone(monkeypatch, tmp_path):
     runs, data = tmp_path / "runs" / "noise1-seed0", tmp_path / "data"
-    for name in ("takeovers2-world-model", "takeovers2-demos-world-model"):
-        (runs / name).mkdir(parents=True)
-        (runs / name / "metrics.json").write_text(json.dumps({"counterfactual": {"of": name}}))
+    world_model_runs(runs, "takeovers2-world-model", "takeovers2-demos-world-model")
     sets = ["--set", "rounds=2", "--set", "refine=true", "--set", "refine_in_demos=true",
             "--set", "demo_noise=1"]  # fmt: skip
     argv, rows = _chain(monkeypatch, tmp_path, *sets, sigma=1.0)
@@ -61,9 +58,7 @@ def test_refine_demos_noise_gives_that_world_model_another_persons_demonstration
     monkeypatch, tmp_path
 ):
     runs, data = tmp_path / "runs" / "noise0-seed0", tmp_path / "data"
-    for name in ("takeovers2-world-model", "takeovers2-demos-world-model"):
-        (runs / name).mkdir(parents=True)
-        (runs / name / "metrics.json").write_text(json.dumps({"counterfactual": {"of": name}}))
+    world_model_runs(runs, "takeovers2-world-model", "takeovers2-demos-world-model")
     sets = ["--set", "rounds=2", "--set", "refine=true", "--set", "refine_in_demos=true",
             "--set", "refine_demos_noise=0.5"]  # fmt: skip
     argv, rows = _chain(monkeypatch, tmp_path, *sets)
@@ -116,9 +111,12 @@ def test_refine_demos_noise_is_checked(capsys, sets, says):
 
 def test_the_chains_own_demonstrations_count_no_extra_frames(monkeypatch, tmp_path):
     runs = tmp_path / "runs" / "noise0.5-seed0"
-    for name in ("takeovers1-world-model", "takeovers1-demos-world-model"):
-        (runs / name).mkdir(parents=True)
-        (runs / name / "metrics.json").write_text(json.dumps({"counterfactual": {}}))
+    world_model_runs(
+        runs,
+        "takeovers1-world-model",
+        "takeovers1-demos-world-model",
+        counterfactual=lambda name: {},
+    )
     sets = ["--set", "rounds=1", "--set", "refine=true", "--set", "refine_in_demos=true",
             "--set", "refine_demos_noise=0.5", "--set", "demo_noise=0.5"]  # fmt: skip
     argv, rows = _chain(monkeypatch, tmp_path, *sets, sigma=0.5)

@@ -10,6 +10,7 @@ import json
 
 import pytest
 from takeover_rig import record_chain as _chain
+from takeover_rig import world_model_runs
 
 from bench import drift_steps, takeover_check
 
@@ -86,9 +87,7 @@ def test_refine_with_drives_adds_a_world_model_that_also_learns_exploration_driv
     monkeypatch, tmp_path
 ):
     runs, data = tmp_path / "runs" / "noise0-seed0", tmp_path / "data"
-    for name in ("takeovers1-world-model", "takeovers1-drives-world-model"):
-        (runs / name).mkdir(parents=True)
-        (runs / name / "metrics.json").write_text(json.dumps({"counterfactual": {"of": name}}))
+    world_model_runs(runs, "takeovers1-world-model", "takeovers1-drives-world-model")
     sets = ["--set", "rounds=1", "--set", "refine=true", "--set", "refine_with_drives=true"]
     argv, rows = _chain(monkeypatch, tmp_path, *sets)
     drive = argv["drive-noise0-seed0-round-drives1"]
