@@ -238,9 +238,9 @@ def equal_at(cfg: TakeoverConfig, k: int) -> bool:
 
 def pairs(cfg: TakeoverConfig, sigma: float = 0.0) -> list[tuple[str, str]]:
     """Each round against IL at its frames, IL on the demonstrations and the round before;
-    with `refine`, the refined policies against the round they started from, IL at its frames
-    (at σ `sigma`'s, with another σ's demonstrations' world model, at its frames too) and each
-    other."""
+    with `refine`, the refined policies of the chains of σ `sigma` against the round they
+    started from, IL at as many frames as they saw (il_at_frames_of), the check's own
+    refinement (those in the demonstrations' world model) and each other's -unc."""
     out = []
     for k in range(1, cfg.rounds + 1):
         out += [(f"takeovers{k}", f"IL-equal-takeovers{k}")] if equal_at(cfg, k) else []
@@ -248,19 +248,27 @@ def pairs(cfg: TakeoverConfig, sigma: float = 0.0) -> list[tuple[str, str]]:
         out += [(f"takeovers{k}", f"takeovers{k - 1}")] if k > 1 else []
     if cfg.refine:
         k = cfg.rounds
-        equal = equal_at(cfg, k)
         for source in sources(cfg):
             head = f"takeovers{k}+{source + '+' if source else ''}"
-            own = source == "demos" and demos_noise(cfg, sigma) == sigma
-            same = source == "" or own  # refined on the round's frames alone: IL's count
+            il = il_at_frames_of(cfg, sigma, source)
             for name in forms(cfg, source):
-                out += [(head + name, f"takeovers{k}")]
-                out += [(head + name, f"IL-equal-takeovers{k}")] if same and equal else []
-                out += [(head + name, f"takeovers{k}+{name}")] if source == "demos" else []
-                other = source == "demos" and not same  # another σ's: IL at its count
-                out += [(head + name, f"IL-equal-takeovers{k}-demos")] if other else []
+                row = head + name
+                out += [(row, f"takeovers{k}"), *([(row, il)] if il else [])]
+                out += [(row, f"takeovers{k}+{name}")] if source == "demos" else []
             out += [(head + name, f"{head}{name}-unc") for name in forms(cfg, source)[::2]]
     return out
+
+
+def il_at_frames_of(cfg: TakeoverConfig, sigma: float, source: str) -> str | None:
+    """The IL row trained on as many frames as a refinement in `source`'s world model saw, at
+    the chains of σ `sigma`: the last round's IL at equal frames when that world model learnt
+    only frames of the round (every frame so far, or the chain's own demonstrations), the
+    "-demos" one when it also learnt another σ's demonstrations; None when no IL trained at
+    that count (a world model with exploration drives, or no IL at the last round)."""
+    k = cfg.rounds
+    if source == "demos" and demos_noise(cfg, sigma) != sigma:
+        return f"IL-equal-takeovers{k}-demos"
+    return f"IL-equal-takeovers{k}" if source in ("", "demos") and equal_at(cfg, k) else None
 
 
 def parse(argv: list[str] | None) -> TakeoverConfig:
