@@ -190,8 +190,8 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
         world_demos = expert.with_name(f"expert-noise{demos_noise(cfg, sigma):g}")
         more = frames_in([world_demos]) if world_demos != expert and cfg.refine_in_demos else 0
         models.update(refined(cfg, step, tag, seed, data, previous, frames, world_demos, more))
-        if more:  # IL on as many frames as the world model's refinement saw
-            il_equal(f"IL-equal-takeovers{cfg.rounds}-demos", frames + more)
+        if more:  # IL on as many frames as the world model's refinement saw: its pair
+            il_equal(il_at_frames_of(cfg, sigma, "demos"), frames + more)
     # driven last trained first, so a check stopped part way (a lent GPU's minutes) has its
     # last round and its IL at equal frames; the rows keep the training order
     mine = []
