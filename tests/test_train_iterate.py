@@ -22,6 +22,7 @@ torch = pytest.importorskip("torch")
 
 from training import checkpoint as ck  # noqa: E402
 from training import refine_drift as rd  # noqa: E402
+from training.data import load_episodes  # noqa: E402
 from training.iterate import main  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -189,6 +190,50 @@ def test_reimitate_learns_again_from_the_previous_policy_before_the_world_model(
     assert all(torch.equal(v, imitated["policy"][k]) for k, v in wm["policy"].items())
 
 
+def test_world_episodes_teach_the_world_model_and_refinement_starts_from_episodes(
+    iteration1, sim_episodes, tmp_path, monkeypatch
+):
+    """--world-episodes: the world model learns those episodes (weight for weight what a run
+    on them alone learns), and refinement starts from --episodes' states in that world model."""
+    import shutil
+
+    from training import refine
+
+    _, prev = iteration1
+    world = tmp_path / "sloppy"
+    for ep in sorted(p for p in sim_episodes.iterdir() if p.is_dir())[-4:]:
+        shutil.copytree(ep, world / ep.name)
+    starts = []
+    real = refine.train_refine
+
+    def recording(cfg, policy, world_model, windows, *a, **kw):
+        starts.append(
+            (set(windows.names), {k: v.clone() for k, v in world_model.state_dict().items()})
+        )
+        return real(cfg, policy, world_model, windows, *a, **kw)
+
+    monkeypatch.setattr(refine, "train_refine", recording)
+    one = tmp_path / "one-run"
+    argv = ["--episodes", str(sim_episodes), "--world-episodes", str(world), "--init", str(prev)]
+    assert main([*argv, "--out", str(one), *QUICK, *steps(0, 3, 2)]) == 0
+    world_run = tmp_path / "world-run"
+    argv = ["--episodes", str(world), "--out", str(world_run), "--init", str(prev)]
+    assert main([*argv, *QUICK, *steps(0, 3, 0)]) == 0
+
+    learnt = ck.load_checkpoint(world_run / "world_model.pt")["world_model"]
+    saved = ck.load_checkpoint(one / "world_model.pt")["world_model"]
+    assert all(torch.equal(v, learnt[k]) for k, v in saved.items())
+    names, refined_in = starts[0]  # the one run's (the world-model run calls it for 0 steps)
+    assert all(torch.equal(v, learnt[k]) for k, v in refined_in.items())
+    policy_eps = {p.name for p in sim_episodes.iterdir() if p.is_dir()}
+    assert names <= policy_eps and names - {p.name for p in world.iterdir()}
+    record = json.loads((one / "metrics.json").read_text())["data"]
+    learnt_eps = load_episodes([str(world)])
+    assert record["world_model_episodes"]["episodes"] == len(learnt_eps) > 0
+    assert record["world_model_episodes"]["frames"] == sum(ep.n for ep in learnt_eps)
+    assert "--world-episodes" in (one / "report.md").read_text()
+
+
 def test_an_interrupted_run_resumes_where_it_stopped(sim_episodes, tmp_path, capsys):
     argv = ["--episodes", str(sim_episodes), *QUICK, *steps(4, 4, 4)]
     straight = tmp_path / "straight"
@@ -242,6 +287,24 @@ def test_two_processes_with_gloo(sim_episodes, tmp_path):
         (["--episodes", "{sim}"], "--out"),
         (["--out", "{tmp}/o", "--episodes", "{sim}", "--device", "gpu"], "not a device"),
         (["--out", "{tmp}/o", "--episodes", "{sim}", "--init", "{tmp}/nothing"], "--init"),
+        (
+            ["--out", "{tmp}/o", "--episodes", "{sim}", "--world-episodes", "{tmp}/missing"],
+            "--world-episodes {tmp}/missing: no such directory",
+        ),
+        (["--out", "{tmp}/o", "--episodes", "{sim}", "--world-episodes", "{tmp}"], "no episodes"),
+        (
+            [
+                "--out",
+                "{tmp}/o",
+                "--episodes",
+                "{sim}",
+                "--world-episodes",
+                "{sim}",
+                "--set",
+                "world_model_steps=0",
+            ],
+            "world_model_steps is 0",
+        ),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, message, sim_episodes, tmp_path, capsys):
@@ -249,7 +312,7 @@ def test_bad_input_is_one_line_and_exit_2(args, message, sim_episodes, tmp_path,
     assert main(argv) == 2
     captured = capsys.readouterr()
     lines = captured.err.strip().splitlines()
-    assert len(lines) == 1 and message in lines[0], captured.err
+    assert len(lines) == 1 and message.format(tmp=tmp_path) in lines[0], captured.err
     assert captured.out == ""
 
 

@@ -25,6 +25,13 @@ class IterateConfig:
 
     # -- data and run
     episodes: tuple[str, ...] = ()  # episode directories, or directories of them
+    # episodes the world model learns INSTEAD of `episodes` (carrt-train --world-episodes);
+    # imitation and refinement still read `episodes`. Empty: the world model learns `episodes`
+    # (the paper's). Why: a world model of a careful driver's frames learns to ignore the
+    # steering (the image already says where it goes); one of a sloppier person's drives, whose
+    # errors last and end in crashes, sees what steering off the line does, and refinement in
+    # it took collisions away on validation and on fresh seeds (docs/dirl_study.md, 2026-11-27)
+    world_episodes: tuple[str, ...] = ()
     out: str = ""  # run directory: checkpoints, policy.pt, policy.onnx, report.md, figures
     init: str | None = None  # previous iteration's run directory (None: iteration 1)
     profile: str = "cpu"  # model sizes and presets: tiny (tests), cpu (a laptop), paper (GPU)
@@ -179,6 +186,11 @@ class IterateConfig:
         for name in non_negative:
             if getattr(self, name) < 0:
                 raise UsageError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.world_episodes and self.world_model_steps == 0:
+            raise UsageError(
+                "--world-episodes given but world_model_steps is 0: the world model would not "
+                "learn them"
+            )
         if not 0.0 <= self.val_fraction < 1.0:
             raise UsageError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
 
@@ -207,4 +219,4 @@ def apply_set(cfg: IterateConfig, items: list[str]) -> IterateConfig:
         raise UsageError(str(exc)) from None
 
 
-FROZEN = ("episodes", "out")  # given as --episodes and --out, not --set
+FROZEN = ("episodes", "world_episodes", "out")  # given as --episodes etc., not --set

@@ -36,17 +36,9 @@ import torch
 from carrt.errors import UserError
 from training import checkpoint as ck
 from training.config import PRESETS, IterateConfig, UsageError, apply_set
-from training.data import (
-    FrameStore,
-    ImitationDataset,
-    Normalisation,
-    WindowDataset,
-    compute_normalisation,
-    data_digest,
-    load_episodes,
-    split_by_placement,
-)
+from training.data import Normalisation, compute_normalisation, data_digest
 from training.profiles import PROFILES
+from training.stage_data import StageData, read_episodes, read_world_episodes
 from training.trainer import (
     Budget,
     Dist,
@@ -66,6 +58,10 @@ class _Parser(argparse.ArgumentParser):
 def parse_args(argv: list[str] | None = None) -> IterateConfig:
     p = _Parser(prog="carrt-train", description=__doc__.split("\n")[0])
     p.add_argument("--episodes", nargs="+", required=True, metavar="DIR")
+    p.add_argument(
+        "--world-episodes", nargs="+", default=[], metavar="DIR",
+        help="episodes the world model learns instead of --episodes (e.g. a sloppier drive)",
+    )  # fmt: skip
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--init", metavar="DIR", help="previous iteration's run directory")
     p.add_argument("--profile", help=f"{' | '.join(PROFILES)} (default: --init's, else cpu)")
@@ -81,7 +77,10 @@ def parse_args(argv: list[str] | None = None) -> IterateConfig:
     profile = a.profile or (_init_profile(a.init) if a.init else "cpu")
     if profile not in PROFILES:
         raise UsageError(f"unknown profile {profile!r}; choose one of {', '.join(PROFILES)}")
-    cfg = IterateConfig(episodes=tuple(a.episodes), out=a.out, init=a.init, profile=profile)
+    cfg = IterateConfig(
+        episodes=tuple(a.episodes), world_episodes=tuple(a.world_episodes), out=a.out,
+        init=a.init, profile=profile,
+    )  # fmt: skip
     cfg = dataclasses.replace(cfg, **PRESETS.get(profile, {}))
     if a.steps is not None:
         cfg = dataclasses.replace(
@@ -133,12 +132,13 @@ def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
     dist = dist or Dist()
     cfg.validate()
     episodes, train_eps, val_eps = read_episodes(cfg)
+    world = read_world_episodes(cfg)
     start = starting_point(cfg, train_eps)
     policy, world_model = build_models(cfg, start)
-    digest = data_digest(train_eps)
+    digest = data_digest([*train_eps, *(world.train if world else [])])
     existing = resume_checkpoints(cfg, start, digest, policy, world_model)
     ctx, common = run_context(cfg, dist, start, digest, train_eps)
-    data = StageData(cfg, train_eps, val_eps)
+    data = StageData(cfg, train_eps, val_eps, world)
     results = {}
     try:
         for stage in start.stages:
@@ -158,26 +158,12 @@ def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
         finish_run(
             cfg, Path(cfg.out), policy=policy, world_model=world_model, norm=start.norm,
             train_eps=train_eps, val_eps=val_eps, episodes=episodes, digest=digest,
-            results=results, iteration=start.iteration, device=dist.device,
+            world=world, results=results, iteration=start.iteration, device=dist.device,
             writer=ctx.writer, world_size=dist.world_size,
         )
     )  # fmt: skip
     ctx.writer.close()
     return summary
-
-
-def read_episodes(cfg: IterateConfig) -> tuple[list, list, list]:
-    """(all, train, validation): validation holds out whole placements."""
-    missing = [e for e in cfg.episodes if not Path(e).exists()]
-    if missing:
-        raise UsageError(f"--episodes {missing[0]}: no such directory")
-    episodes = load_episodes(list(cfg.episodes)) if cfg.episodes else []
-    if not episodes:
-        raise UsageError(
-            f"no episodes with steps under {', '.join(cfg.episodes) or '(none given)'}"
-        )
-    train_eps, val_eps = split_by_placement(episodes, cfg.val_fraction, cfg.seed)
-    return episodes, train_eps, val_eps
 
 
 def starting_point(cfg: IterateConfig, train_eps: list) -> Start:
@@ -254,41 +240,6 @@ def run_context(cfg: IterateConfig, dist: Dist, start: Start, digest: str, train
     return ctx, common
 
 
-class StageData:
-    """The datasets every stage reads, over frames decoded once into RAM (data.FrameStore)."""
-
-    def __init__(self, cfg: IterateConfig, train_eps: list, val_eps: list) -> None:
-        h, size = cfg.profile_obj.horizon, cfg.profile_obj.predict_size
-        self.cfg, self.train_eps, self.val_eps, self.horizon = cfg, train_eps, val_eps, h
-        self.store = FrameStore(train_eps)
-        self.val_store = FrameStore(val_eps) if val_eps else None
-        takeovers = cfg.takeovers_as_collisions
-        self.windows = WindowDataset(
-            train_eps, h, predict_size=size, takeovers_as_collisions=takeovers, store=self.store
-        )
-        self.val_windows = (
-            WindowDataset(val_eps, h, predict_size=size, takeovers_as_collisions=takeovers,
-                          store=self.val_store) if val_eps else None
-        )  # fmt: skip
-        if len(self.windows) == 0:
-            raise UsageError("no training windows: every training episode has fewer than 2 steps")
-
-    def demonstrations(self) -> ImitationDataset:
-        """The training windows a person drove (imitation's targets; refinement's safeguard)."""
-        iw, h = self.cfg.intervention_weight, self.horizon
-        return ImitationDataset(self.train_eps, h, intervention_weight=iw, store=self.store)
-
-    def imitation(self):
-        iw, h = self.cfg.intervention_weight, self.horizon
-        free = self.demonstrations()
-        val = None
-        if self.val_eps:
-            val = ImitationDataset(self.val_eps, h, intervention_weight=iw, store=self.val_store)
-        if len(free) == 0 and self.cfg.imitation_steps > 0:
-            raise UsageError("no collision-free MANUAL steps in the training episodes to imitate")
-        return free, val
-
-
 def train_stage(stage, cfg, policy, world_model, data: StageData, norm, ctx, resume):
     from training.imitation import train_imitation
     from training.refine import train_refine
@@ -298,10 +249,11 @@ def train_stage(stage, cfg, policy, world_model, data: StageData, norm, ctx, res
         free, val_free = data.imitation()
         return train_imitation(cfg, policy, free, ctx, resume=resume, val_dataset=val_free)
     if stage == "world_model":
-        weight = cfg.collision_weight or collision_class_weight(data.windows.step_labels())
+        windows = data.world_windows
+        weight = cfg.collision_weight or collision_class_weight(windows.step_labels())
         return train_world_model(
-            cfg, world_model, data.windows, norm, ctx, collision_weight=weight,
-            policy=policy, resume=resume, val_dataset=data.val_windows,
+            cfg, world_model, windows, norm, ctx, collision_weight=weight,
+            policy=policy, resume=resume, val_dataset=data.world_val_windows,
         )  # fmt: skip
     demonstrations = data.demonstrations() if cfg.refine_w_imitation else None
     if cfg.refine_outcomes:

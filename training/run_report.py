@@ -41,7 +41,7 @@ def _export(cfg, out: Path) -> tuple[list[str], dict | None, int]:
 
 def finish_run(
     cfg, out: Path, *, policy, world_model, norm, train_eps, val_eps, episodes, digest,
-    results, iteration, device, writer=None, world_size=1,
+    results, iteration, device, writer=None, world_size=1, world=None,
 ) -> dict:  # fmt: skip
     from training.data import WindowDataset, placement_key, takeover_labels
 
@@ -112,6 +112,7 @@ def finish_run(
         "collision_frames": int(sum(int(ep.collision.sum()) for ep in episodes)),
         "takeover_frames": int(sum(int(takeover_labels(ep).sum()) for ep in episodes)),
         "train_digest": digest,
+        "world_model_episodes": None if world is None else _world_data(world),
     }
     record = {
         "iteration": iteration, "profile": cfg.profile, "world_size": world_size,
@@ -124,6 +125,28 @@ def finish_run(
     (out / "report.md").write_text(render(cfg, record, export_lines))
     lines = [f"wrote {out / 'report.md'}", *export_lines]
     return {"metrics": metrics, "record": record, "lines": lines, "exit_code": exit_code}
+
+
+def _world_line(w: dict | None) -> list[str]:
+    if w is None:
+        return []
+    return [
+        f"- the world model learnt other episodes (--world-episodes): {w['episodes']} "
+        f"({w['frames']} frames, {w['collision_frames']} labelled collision; "
+        f"{w['train_frames']} trained on, {w['held_out_frames']} held out); its held-out "
+        "metrics below are on the policy's held-out episodes"
+    ]
+
+
+def _world_data(world) -> dict:
+    """What the world model learnt when it was not the policy's episodes (--world-episodes)."""
+    return {
+        "episodes": len(world.all),
+        "frames": int(sum(ep.n for ep in world.all)),
+        "train_frames": int(sum(ep.n for ep in world.train)),
+        "held_out_frames": int(sum(ep.n for ep in world.val)),
+        "collision_frames": int(sum(int(ep.collision.sum()) for ep in world.all)),
+    }
 
 
 def render(cfg, r: dict, export_lines: list[str]) -> str:
@@ -145,6 +168,7 @@ def render(cfg, r: dict, export_lines: list[str]) -> str:
         f"({d.get('train_placements', '?')} placements, {d['train_frames']} frames), "
         f"{len(d['held_out_episodes'])} held out ({d['held_out_frames']} frames) on "
         f"{', '.join(d.get('held_out_placements', [])) or '—'}",
+        *_world_line(d.get("world_model_episodes")),
         f"- training data digest: `{d['train_digest']}`",
         "",
         "## Stages",
