@@ -53,6 +53,8 @@ DEMO_TRACKS = "1000-1219"
 TAKEOVER_TRACKS = ("1000-1099", "1100-1219")  # round 1, round 2
 LAYOUTS = "mixed,hard"
 EVAL_TRACKS = "100-104"
+SLOPPY_TRACKS = "1000-1039"  # the sloppier person's demonstrations (world model only)
+SLOPPY_WORLD = False  # decided on validation placements 200-259 (docs/demo_policy_validation.json)
 THROTTLE_CEILING = 0.9  # chosen on validation placements 200-219 (docs/demo_policy_validation.json)
 
 
@@ -82,6 +84,27 @@ def imitation(
             "--set", "progress=false", "--set", "figures=false"]  # fmt: skip
 
 
+def sloppy_world_refinement(
+    py: str, data: list[Path], policy_dir: Path, work: Path, a: argparse.Namespace
+) -> Path:
+    """A sloppier person's demonstrations (σ 0.5 on every command, an error lasting τ 0.5 s)
+    teach a world model what steering off the line does; the last network is refined in it
+    from its own episodes' states (`carrt-train --world-episodes`, the study's refinement).
+    Returns the refined run."""
+    sloppy, refined = work / "sloppy", work / "refined"
+    run([py, "-m", "training.sim_data", "demos", "--out", str(sloppy), "--tracks", SLOPPY_TRACKS,
+         "--layouts", LAYOUTS, "--episodes", str(a.episodes), "--noise", "0.5",
+         "--noise-tau", "0.5", "--jobs", str(a.jobs)], work / ".done-sloppy")  # fmt: skip
+    run([py, str(ROOT / "training" / "iterate.py"), "--episodes", *map(str, data),
+         "--world-episodes", str(sloppy), "--init", str(policy_dir), "--out", str(refined),
+         "--profile", "cpu", "--seed", str(a.seed), "--set", "world_model_steps=3000",
+         "--set", "refine_steps=300", "--set", "refine_w_imitation=50",
+         "--set", "counterfactual_starts=6", "--set", "counterfactual_tracks=200-204",
+         "--set", f"threads={a.threads}", "--set", "progress=false", "--set", "figures=false"],
+        refined / ".done")  # fmt: skip
+    return refined
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="training/demo_policy.py", description=__doc__.split("\n")[0])
     p.add_argument("--out", default=str(SHIPPED), help=f"default: {SHIPPED.relative_to(ROOT)}")
@@ -105,6 +128,11 @@ def main(argv: list[str] | None = None) -> int:
         "--max-throttle", type=float, default=THROTTLE_CEILING,
         help="throttle ceiling written into the shipped file (default: %(default)s; 1: none)",
     )  # fmt: skip
+    p.add_argument(
+        "--sloppy-world", action=argparse.BooleanOptionalAction, default=SLOPPY_WORLD,
+        help="refine the last network in a world model of a sloppier person's demonstrations "
+        "(default: %(default)s)",
+    )  # fmt: skip
     p.add_argument("--threads", type=int, default=2, help="torch threads")
     p.add_argument("--jobs", type=int, default=2, help="simulator processes for recording")
     p.add_argument("--seed", type=int, default=0)
@@ -124,6 +152,8 @@ def main(argv: list[str] | None = None) -> int:
             work / f".done-takeovers{'' if round_ == 1 else round_}")  # fmt: skip
         data, policy_dir = [*data, takeovers], work / f"il{round_ + 1}"
         run(imitation(py, data, policy_dir, a, a.final_steps), policy_dir / ".done")
+    if a.sloppy_world:
+        policy_dir = sloppy_world_refinement(py, data, policy_dir, work, a)
     # iterate.py exported the policy through export.export_policy (parity with PyTorch on
     # recorded frames checked). No int8 variant: export refused it for this policy (μ error
     # max 0.48 against fp32 on held-out frames, bound 0.2), so the float file ships.
