@@ -23,16 +23,20 @@ from training.data import (
 
 def read_episodes(cfg: IterateConfig) -> tuple[list, list, list]:
     """(all, train, validation): validation holds out whole placements."""
-    missing = [e for e in cfg.episodes if not Path(e).exists()]
-    if missing:
-        raise UsageError(f"--episodes {missing[0]}: no such directory")
-    episodes = load_episodes(list(cfg.episodes)) if cfg.episodes else []
-    if not episodes:
-        raise UsageError(
-            f"no episodes with steps under {', '.join(cfg.episodes) or '(none given)'}"
-        )
+    episodes = _load(cfg.episodes, "--episodes")
     train_eps, val_eps = split_by_placement(episodes, cfg.val_fraction, cfg.seed)
     return episodes, train_eps, val_eps
+
+
+def _load(dirs: tuple[str, ...], option: str) -> list:
+    """The episodes under `dirs`; a missing directory or none with steps is a UsageError."""
+    missing = [e for e in dirs if not Path(e).exists()]
+    if missing:
+        raise UsageError(f"{option} {missing[0]}: no such directory")
+    episodes = load_episodes(list(dirs)) if dirs else []
+    if not episodes:
+        raise UsageError(f"no episodes with steps under {', '.join(dirs) or '(none given)'}")
+    return episodes
 
 
 @dataclass
@@ -49,12 +53,7 @@ def read_world_episodes(cfg: IterateConfig) -> WorldEpisodes | None:
     """None when the world model learns --episodes (the default)."""
     if not cfg.world_episodes:
         return None
-    missing = [e for e in cfg.world_episodes if not Path(e).exists()]
-    if missing:
-        raise UsageError(f"--world-episodes {missing[0]}: no such directory")
-    episodes = load_episodes(list(cfg.world_episodes))
-    if not episodes:
-        raise UsageError(f"no episodes with steps under {', '.join(cfg.world_episodes)}")
+    episodes = _load(cfg.world_episodes, "--world-episodes")
     return WorldEpisodes(episodes, *split_by_placement(episodes, cfg.val_fraction, cfg.seed))
 
 
