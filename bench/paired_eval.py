@@ -19,6 +19,7 @@ import math
 import sys
 from pathlib import Path
 
+from bench.json_file import read_json
 from carrt.errors import EXIT_USAGE, UserError
 
 METRICS = ("completion_ratio", "collisions_per_min", "average_speed")
@@ -26,12 +27,7 @@ METRICS = ("completion_ratio", "collisions_per_min", "average_speed")
 
 def load(path: str) -> dict:
     """A `carrt eval --json` file; a missing or foreign one is a UserError."""
-    try:
-        data = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise UserError(f"no such eval file: {path}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: not a carrt eval file ({exc.__class__.__name__})") from None
+    data = read_json(path, "carrt eval file")
     if not isinstance(data, dict) or not isinstance(data.get("runs"), list) or not data["runs"]:
         raise UserError(f"{path}: not a carrt eval file (no runs)")
     for run in data["runs"]:

@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 
 from bench.dirl_table import cell
+from bench.json_file import read_json
 from bench.provenance import environment
 from carrt.arg_types import finite_positive
 from carrt.errors import EXIT_USAGE, UserError
@@ -31,12 +32,7 @@ KEYS = (("completion_ratio", 1.0), ("collisions_per_min", -1.0))  # (metric, sig
 
 def load(path: str) -> dict:
     """A check's results file (config and rows); a missing or foreign one is a UserError."""
-    try:
-        data = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise UserError(f"no such results file: {path}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: not a results file ({exc.__class__.__name__})") from None
+    data = read_json(path, "results file")
     if not isinstance(data, dict) or not isinstance(data.get("rows"), list):
         raise UserError(f"{path}: not a results file (no rows)")
     return data

@@ -40,7 +40,7 @@ def test_deltas_are_paired_by_placement_and_seed_not_by_order(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("case, says", [
-    ("missing", "no such eval file"), ("garbage", "not a carrt eval file"),
+    ("missing", "no such carrt eval file"), ("garbage", "not a carrt eval file"),
     ("other runs", "different runs"), ("other seconds", "differ in seconds"),
     ("nan", "without finite"),
 ])  # fmt: skip
