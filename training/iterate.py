@@ -2,6 +2,7 @@
 
     carrt-train --episodes episodes/ --out runs/iter1 --profile cpu
     carrt-train --episodes episodes/ --out runs/iter2 --init runs/iter1
+    carrt-train --episodes episodes/ --world-episodes sloppy/ --out runs/r --init runs/iter1
     torchrun --nproc_per_node 2 training/iterate.py …          # DistributedDataParallel
 
 Iteration 1 (no --init) learns the policy by imitation, then the world model, then refines the
@@ -9,7 +10,8 @@ policy in the world model's imagination. A later iteration (--init runs/iterN-1)
 previous policy and world model, trains the world model on ALL the episodes given (old + new)
 and refines again; imitation does not run again (the paper's algorithm, DESIGN §2) unless
 `reimitate` is set: then the previous policy first learns by imitation on every labelled frame,
-the person's take-overs in the new episodes included.
+the person's take-overs in the new episodes included. With --world-episodes the world model
+learns those episodes instead (imitation and refinement still read --episodes).
 
 Every number lives in IterateConfig (training/config.py); a profile name picks model sizes and
 a preset of steps and batch sizes (PRESETS), and `--set field=value` overrides any field.
