@@ -81,14 +81,22 @@ def run(argv: list[str], done: Path | None = None) -> None:
         done.touch()
 
 
+def iterate(
+    py: str, episodes: list[Path], out: Path, a: argparse.Namespace, *sets: str
+) -> list[str]:
+    """carrt-train (iterate.py) on `episodes` into `out`, `cpu` profile, the script's seed and
+    threads, quiet; `sets`: its stages' settings (--set field=value pairs, other flags)."""
+    return [py, str(ROOT / "training" / "iterate.py"), "--episodes", *map(str, episodes),
+            "--out", str(out), "--profile", "cpu", "--seed", str(a.seed), *sets,
+            "--set", f"threads={a.threads}", "--set", "progress=false",
+            "--set", "figures=false"]  # fmt: skip
+
+
 def imitation(
     py: str, episodes: list[Path], out: Path, a: argparse.Namespace, steps: int
 ) -> list[str]:
-    return [py, str(ROOT / "training" / "iterate.py"), "--episodes", *map(str, episodes),
-            "--out", str(out), "--profile", "cpu", "--seed", str(a.seed),
-            "--set", f"imitation_steps={steps}", "--set", "world_model_steps=0",
-            "--set", "refine_steps=0", "--set", f"threads={a.threads}",
-            "--set", "progress=false", "--set", "figures=false"]  # fmt: skip
+    return iterate(py, episodes, out, a, "--set", f"imitation_steps={steps}",
+                   "--set", "world_model_steps=0", "--set", "refine_steps=0")  # fmt: skip
 
 
 def sloppy_world_refinement(
@@ -102,13 +110,10 @@ def sloppy_world_refinement(
     run([py, "-m", "training.sim_data", "demos", "--out", str(sloppy), "--tracks", SLOPPY_TRACKS,
          "--layouts", LAYOUTS, "--episodes", str(a.episodes), "--noise", "0.5",
          "--noise-tau", "0.5", "--jobs", str(a.jobs)], work / ".done-sloppy")  # fmt: skip
-    run([py, str(ROOT / "training" / "iterate.py"), "--episodes", *map(str, data),
-         "--world-episodes", str(sloppy), "--init", str(policy_dir), "--out", str(refined),
-         "--profile", "cpu", "--seed", str(a.seed), "--set", "world_model_steps=3000",
-         "--set", "refine_steps=300", "--set", "refine_w_imitation=50",
-         "--set", "counterfactual_starts=6", "--set", "counterfactual_tracks=200-204",
-         "--set", f"threads={a.threads}", "--set", "progress=false", "--set", "figures=false"],
-        refined / ".done")  # fmt: skip
+    run(iterate(py, data, refined, a, "--world-episodes", str(sloppy), "--init", str(policy_dir),
+                "--set", "world_model_steps=3000", "--set", "refine_steps=300",
+                "--set", "refine_w_imitation=50", "--set", "counterfactual_starts=6",
+                "--set", "counterfactual_tracks=200-204"), refined / ".done")  # fmt: skip
     return refined
 
 
