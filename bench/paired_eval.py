@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import sys
 from pathlib import Path
 
@@ -52,23 +53,20 @@ def compare(a: dict, b: dict) -> dict:
         raise UserError(f"the files hold different runs ({len(ra)} against {len(rb)} (track, "
                         "seed) pairs): drive both on the same placements and seeds")  # fmt: skip
     keys = sorted(ra)
-    out = {"runs": len(keys)}
+    n, seeds = len(keys), sorted({seed for _, seed in keys})
+    out = {"runs": n}
     for metric in METRICS:
         deltas = [rb[k][metric] - ra[k][metric] for k in keys]
-        n = len(deltas)
-        mean = sum(deltas) / n
-        sd = math.sqrt(sum((d - mean) ** 2 for d in deltas) / (n - 1)) if n > 1 else 0.0
-        seeds = sorted({seed for _, seed in keys})
+        sd = statistics.stdev(deltas) if n > 1 else 0.0
         per_seed = {
-            seed: sum(d for (_, s), d in zip(keys, deltas, strict=True) if s == seed)
-            / sum(1 for _, s in keys if s == seed)
+            seed: statistics.fmean(d for (_, s), d in zip(keys, deltas, strict=True) if s == seed)
             for seed in seeds
         }
         sign = -1.0 if metric == "collisions_per_min" else 1.0
         out[metric] = {
-            "a": sum(ra[k][metric] for k in keys) / n,
-            "b": sum(rb[k][metric] for k in keys) / n,
-            "delta": mean,
+            "a": statistics.fmean(ra[k][metric] for k in keys),
+            "b": statistics.fmean(rb[k][metric] for k in keys),
+            "delta": statistics.fmean(deltas),
             "se": sd / math.sqrt(n),
             "per_seed": per_seed,
             "better": sum(1 for d in deltas if sign * d > 0),
