@@ -5,6 +5,8 @@ policy reached worth more per frame than clean demonstrations?
     python -m bench.takeover_check --set rounds=3
     python -m bench.takeover_check --set demo_noise=0.5,1.0
     python -m bench.takeover_check --set refine=true   # + DIRL on the last round, and -unc
+    python -m bench.takeover_check --set rounds=0 --set refine=true \
+        --set demo_noise=0,1.0                         # DIRL at IL's own frames, no take-overs
     python -m bench.takeover_check --set rounds=3 --set refine=true --set refine_paper_form=true \
         --set refine_with_drives=true --set refine_crashes_only=true --set refine_drift=true \
         --set drift_members=2                          # + where refinement moved the plan
@@ -82,7 +84,7 @@ from bench.dirl_table import plot
 from bench.drift_steps import drift_table, read_drift
 from bench.study_config import StudyConfig
 from bench.study_steps import StudyStep, output_of
-from bench.takeover_refine import forms, name_of, refined, sources, world_model_run
+from bench.takeover_refine import forms, name_of, refined, sources, start_of, world_model_run
 
 
 @dataclass
@@ -91,6 +93,8 @@ class TakeoverConfig:
 
     out: str = "bench/results/outcome"  # the outcome check's: its demonstrations and IL reused
     seeds: tuple[int, ...] = (0, 1, 2)
+    # 0 (with refine): no take-overs; IL refined in a world model of its own demonstrations,
+    # on the same frames ("IL+refined" ± unc against IL: the DIRL iteration at equal data)
     rounds: int = 2
     round_seconds: float = 50.0  # simulated s of take-over driving per placement and round
     # the rounds IL at equal frames trains at (and is paired with); empty: every round. A
@@ -247,14 +251,14 @@ def pairs(cfg: TakeoverConfig, sigma: float = 0.0) -> list[tuple[str, str]]:
         out += [(f"takeovers{k}", "IL")]
         out += [(f"takeovers{k}", f"takeovers{k - 1}")] if k > 1 else []
     if cfg.refine:
-        k = cfg.rounds
+        start = start_of(cfg.rounds)
         for source in sources(cfg):
-            head = f"takeovers{k}+{source + '+' if source else ''}"
+            head = f"{start}+{source + '+' if source else ''}"
             il = il_at_frames_of(cfg, sigma, source)
             for name in forms(cfg, source):
                 row = head + name
-                out += [(row, f"takeovers{k}"), *([(row, il)] if il else [])]
-                out += [(row, f"takeovers{k}+{name}")] if source == "demos" else []
+                out += [(row, start), *([(row, il)] if il and il != start else [])]
+                out += [(row, f"{start}+{name}")] if source == "demos" else []
             out += [(head + name, f"{head}{name}-unc") for name in forms(cfg, source)[::2]]
     return out
 
@@ -266,6 +270,8 @@ def il_at_frames_of(cfg: TakeoverConfig, sigma: float, source: str) -> str | Non
     "-demos" one when it also learnt another σ's demonstrations; None when no IL trained at
     that count (a world model with exploration drives, or no IL at the last round)."""
     k = cfg.rounds
+    if k == 0:  # refined on the demonstrations alone: IL's own frames
+        return "IL"
     if source == "demos" and demos_noise(cfg, sigma) != sigma:
         return f"IL-equal-takeovers{k}-demos"
     return f"IL-equal-takeovers{k}" if source in ("", "demos") and equal_at(cfg, k) else None
@@ -273,8 +279,12 @@ def il_at_frames_of(cfg: TakeoverConfig, sigma: float, source: str) -> str | Non
 
 def parse(argv: list[str] | None) -> TakeoverConfig:
     p, cfg = read_sets(argv, TakeoverConfig(), "bench.takeover_check", __doc__, "TakeoverConfig")
-    if cfg.rounds < 1:
-        p.error(f"rounds: {cfg.rounds} (1 or more)")
+    if cfg.rounds < 0 or (cfg.rounds == 0 and not cfg.refine):
+        p.error(f"rounds: {cfg.rounds} (1 or more; 0 with refine=true: IL refined at its frames)")
+    for option in ("refine_in_demos", "refine_with_drives"):
+        if cfg.rounds == 0 and getattr(cfg, option):
+            p.error(f"{option}: needs rounds of take-overs (rounds=0: the world model already "
+                    "learns the demonstrations alone)")  # fmt: skip
     tracks = cfg.study.iteration_tracks
     for option in ("rounds", "robustness_rounds"):
         if tracks and getattr(cfg, option) > len(tracks):
@@ -315,9 +325,16 @@ def world_demos_only(cfg: TakeoverConfig) -> tuple[float, ...]:
     return tuple(sorted(wanted - set(cfg.demo_noise)))
 
 
+def needs_second_pool(cfg: TakeoverConfig) -> bool:
+    """Whether any chain trains IL at equal frames (the second demonstration pool's use): not
+    when none has rounds (`rounds=0`: refinement's pair is IL itself)."""
+    return any(for_noise(cfg, s).rounds for s in cfg.demo_noise)
+
+
 def plan(cfg: TakeoverConfig) -> Counter[str]:
     """The check's steps by kind (the progress count and the ETA's weights)."""
-    kinds = Counter({"demos": 2 * len(cfg.demo_noise) + len(world_demos_only(cfg))})
+    pools = 1 + needs_second_pool(cfg)
+    kinds = Counter({"demos": pools * len(cfg.demo_noise) + len(world_demos_only(cfg))})
     for sigma in cfg.demo_noise:
         mine, n = for_noise(cfg, sigma), len(cfg.seeds)
         r = mine.rounds
@@ -329,7 +346,7 @@ def plan(cfg: TakeoverConfig) -> Counter[str]:
         if not mine.refine:
             continue
         for source in sources(mine):
-            head = f"train takeovers{r}-{source + '-' if source else ''}"
+            head = f"train {start_of(r).lower()}-{source + '-' if source else ''}"
             kinds += {head + name: n for name in ["world-model", *forms(mine, source)]}
         kinds += (
             {"drive": n * (1 + bool(mine.more_drive_tracks))} if mine.refine_with_drives else {}
@@ -347,7 +364,9 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    rows = run_check(cfg, dict(plan(cfg)), chain, also=world_demos_only(cfg))
+    rows = run_check(
+        cfg, dict(plan(cfg)), chain, extra=needs_second_pool(cfg), also=world_demos_only(cfg)
+    )
     name = f"takeovers{suffix(cfg)}-noise{'_'.join(f'{x:g}' for x in cfg.demo_noise)}"
     figure = out / f"completion_vs_frames-{name}.png"
     refined = ", the last refined in world models" if cfg.refine else ""

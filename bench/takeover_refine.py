@@ -35,8 +35,15 @@ def world_model_run(cfg: TakeoverConfig, tag: str, source: str = "") -> Path:
     demonstrations alone with source "demos" (`refine_in_demos`), and the last round's
     exploration drives too with "drives" (`refine_with_drives`), without the take-over labels
     with "drives-crashes-only" (`refine_crashes_only`)."""
-    name = "-".join(x for x in (f"takeovers{cfg.rounds}", source, "world-model") if x)
+    name = "-".join(x for x in (start_of(cfg.rounds).lower(), source, "world-model") if x)
     return Path(cfg.out) / "runs" / tag / name
+
+
+def start_of(rounds: int) -> str:
+    """The row refinement starts from: the last round's ("takeovers<k>"), or "IL" with no
+    rounds (`rounds=0`: IL refined in a world model of its own demonstrations, on the same
+    frames — the DIRL iteration at exactly IL's data)."""
+    return f"takeovers{rounds}" if rounds else "IL"
 
 
 def refined(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data: list[Path],
@@ -75,9 +82,9 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
     """One world model on `world_data` (default `data`) from the last round's policy (its
     counterfactual check in its run's metrics.json), then each refinement variant from it, on
     `data`."""
-    study, k = cfg.study, cfg.rounds
+    study, start = cfg.study, start_of(cfg.rounds)
     runs, world = Path(cfg.out) / "runs" / tag, world_model_run(cfg, tag, source)
-    prefix = f"takeovers{k}-{source}-" if source else f"takeovers{k}-"
+    prefix = f"{start.lower()}-{source}-" if source else f"{start.lower()}-"
     labels = collision_labels(cfg.takeovers_as_collisions and source in ("", "demos", "drives"))
 
     def learn(run: Path, extra: list[str]) -> list[str]:
@@ -97,7 +104,7 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
              run / ".done")  # fmt: skip
         if cfg.refine_drift:
             drift(step, tag, run, world, members)
-        out[f"takeovers{k}+{source + '+' if source else ''}{name}"] = (run, frames)
+        out[f"{start}+{source + '+' if source else ''}{name}"] = (run, frames)
     return out
 
 
