@@ -225,7 +225,9 @@ def train_refine(
             loss = loss + cfg.refine_w_anchor * anchor
             metrics["anchor"] = anchor.detach()
         if demos is not None:
-            bc, _ = imitation_loss(model.policy, demonstration_batch(demos, cfg, step, ctx))
+            # the policy itself, not model.policy: under torchrun `model` is DDP's wrapper; the
+            # gradient reaches the same parameters and DDP reduces their summed gradient
+            bc, _ = imitation_loss(policy, demonstration_batch(demos, cfg, step, ctx))
             loss = loss + cfg.refine_w_imitation * bc
             metrics["imitation_l1"] = bc.detach()
         return loss, metrics

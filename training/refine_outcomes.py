@@ -214,7 +214,8 @@ def train_refine_outcomes(
         loss, metrics = imitation_loss(model, batch)
         metrics = {"outcome_l1": loss.detach(), **metrics}
         if demos is not None:
-            bc, _ = imitation_loss(model, demonstration_batch(demos, cfg, step, ctx))
+            # the policy itself: one forward through DDP's wrapper per step (as refine.py)
+            bc, _ = imitation_loss(policy, demonstration_batch(demos, cfg, step, ctx))
             loss = loss + cfg.refine_w_imitation * bc
             metrics["imitation_l1"] = bc.detach()
         return loss, metrics
