@@ -92,6 +92,8 @@ def typical_s(kind: str) -> float | None:
         return TYPICAL_S["train world-model"]
     if kind.startswith("train ") and re.search(r"-(refined|paper)", kind):
         return TYPICAL_S["train refine"]
+    if kind.startswith("train il-equal"):  # "train il-equal-demos": IL at as many frames
+        return TYPICAL_S["train il-equal"]
     return None
 
 

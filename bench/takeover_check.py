@@ -94,7 +94,9 @@ class TakeoverConfig:
     out: str = "bench/results/outcome"  # the outcome check's: its demonstrations and IL reused
     seeds: tuple[int, ...] = (0, 1, 2)
     # 0 (with refine): no take-overs; IL refined in a world model of its own demonstrations,
-    # on the same frames ("IL+refined" ± unc against IL: the DIRL iteration at equal data)
+    # on the same frames ("IL+refined" ± unc against IL: the DIRL iteration at equal data);
+    # with refine_in_demos and refine_demos_noise=σ' also in one of σ''s demonstrations
+    # ("IL+demos+refined", paired with "IL-equal-demos" at as many frames)
     rounds: int = 2
     round_seconds: float = 50.0  # simulated s of take-over driving per placement and round
     # the rounds IL at equal frames trains at (and is paired with); empty: every round. A
@@ -270,21 +272,28 @@ def il_at_frames_of(cfg: TakeoverConfig, sigma: float, source: str) -> str | Non
     "-demos" one when it also learnt another σ's demonstrations; None when no IL trained at
     that count (a world model with exploration drives, or no IL at the last round)."""
     k = cfg.rounds
+    if source == "demos" and demos_noise(cfg, sigma) != sigma:
+        return il_equal_demos(k)
     if k == 0:  # refined on the demonstrations alone: IL's own frames
         return "IL"
-    if source == "demos" and demos_noise(cfg, sigma) != sigma:
-        return f"IL-equal-takeovers{k}-demos"
     return f"IL-equal-takeovers{k}" if source in ("", "demos") and equal_at(cfg, k) else None
+
+
+def il_equal_demos(rounds: int) -> str:
+    """The IL row at as many frames as a refinement in another σ's demonstrations' world model
+    saw (`refine_demos_noise`)."""
+    return f"IL-equal-takeovers{rounds}-demos" if rounds else "IL-equal-demos"
 
 
 def parse(argv: list[str] | None) -> TakeoverConfig:
     p, cfg = read_sets(argv, TakeoverConfig(), "bench.takeover_check", __doc__, "TakeoverConfig")
     if cfg.rounds < 0 or (cfg.rounds == 0 and not cfg.refine):
         p.error(f"rounds: {cfg.rounds} (1 or more; 0 with refine=true: IL refined at its frames)")
-    for option in ("refine_in_demos", "refine_with_drives"):
-        if cfg.rounds == 0 and getattr(cfg, option):
-            p.error(f"{option}: needs rounds of take-overs (rounds=0: the world model already "
-                    "learns the demonstrations alone)")  # fmt: skip
+    if cfg.rounds == 0 and cfg.refine_with_drives:
+        p.error("refine_with_drives: needs rounds of take-overs (the last round's policy drives)")
+    if cfg.rounds == 0 and cfg.refine_in_demos and cfg.refine_demos_noise == -1:
+        p.error("refine_in_demos: with rounds=0 the world model already learns the chain's own "
+                "demonstrations alone; give refine_demos_noise=σ' for another σ's")  # fmt: skip
     tracks = cfg.study.iteration_tracks
     for option in ("rounds", "robustness_rounds"):
         if tracks and getattr(cfg, option) > len(tracks):
@@ -327,8 +336,11 @@ def world_demos_only(cfg: TakeoverConfig) -> tuple[float, ...]:
 
 def needs_second_pool(cfg: TakeoverConfig) -> bool:
     """Whether any chain trains IL at equal frames (the second demonstration pool's use): not
-    when none has rounds (`rounds=0`: refinement's pair is IL itself)."""
-    return any(for_noise(cfg, s).rounds for s in cfg.demo_noise)
+    when none has rounds (`rounds=0`: refinement's pair is IL itself) unless a world model
+    learns another σ's demonstrations too (its pair: IL at as many frames)."""
+    mine = [(for_noise(cfg, s), s) for s in cfg.demo_noise]
+    return any(c.rounds or (c.refine and c.refine_in_demos and demos_noise(c, s) != s)
+               for c, s in mine)  # fmt: skip
 
 
 def plan(cfg: TakeoverConfig) -> Counter[str]:
@@ -353,7 +365,7 @@ def plan(cfg: TakeoverConfig) -> Counter[str]:
         )
         kinds += {"drift": refined_rows * n} if mine.refine_drift else {}
         if mine.refine_in_demos and demos_noise(mine, sigma) != sigma:
-            kinds += {f"train il-equal-takeovers{r}-demos": n, "eval": n}
+            kinds += {f"train {il_equal_demos(r).lower()}": n, "eval": n}
         if mine.drift_members:
             kinds += {f"train takeovers{r}-drives-crashes-only-member": mine.drift_members * n}
     return +kinds

@@ -1,7 +1,9 @@
 """bench/takeover_check.py with `rounds=0`: no take-overs; IL refined in a world model of its own
 demonstrations, on the same frames. That is the DIRL iteration at exactly IL's data (the
 issue's "DIRL against IL at equal frames" with nothing else different), so its rows pair with
-IL itself and the second demonstration pool is never recorded."""
+IL itself and the second demonstration pool is not recorded — unless a world model also learns
+another σ's demonstrations (`refine_demos_noise`), whose refined rows pair with IL at as many
+frames."""
 
 from __future__ import annotations
 
@@ -54,10 +56,45 @@ def test_no_second_pool_is_recorded_and_every_planned_step_has_a_typical_time():
     assert all(typical_s(kind) is not None for kind in plan), plan
 
 
+def test_a_sloppier_persons_world_model_refines_il_paired_with_il_at_as_many_frames(
+    monkeypatch, tmp_path
+):
+    runs, data = tmp_path / "runs" / "noise0-seed5", tmp_path / "data"
+    world_model_runs(runs, "il-world-model", "il-demos-world-model")
+    sets = [*AT_EQUAL_DATA, "--set", "refine_in_demos=true", "--set", "refine_demos_noise=0.5"]
+    argv, rows = record_chain(monkeypatch, tmp_path, *sets, seed=5)
+    world = argv["train-noise0-seed5-il-demos-world-model"]
+    assert world[world.index("--init") + 1] == str(runs / "il")
+    assert world[world.index("--episodes") + 1 : world.index("--out")] == [
+        str(data / "expert-noise0.5")
+    ]
+    refined = argv["train-noise0-seed5-il-demos-refined"]  # on the clean demonstrations alone
+    assert refined[refined.index("--episodes") + 1 : refined.index("--out")] == [
+        str(data / "expert-noise0")
+    ]
+    assert refined[refined.index("--init") + 1] == str(runs / "il-demos-world-model")
+    il = argv["train-noise0-seed5-il-equal-demos"]  # the clean pool tops IL up to as many
+    assert il[il.index("--episodes") + 1 : il.index("--out")] == [
+        str(data / "expert-noise0"), str(data / "extra-noise0" / "0")
+    ]  # fmt: skip
+    by_model = {r["model"]: r for r in rows}
+    assert by_model["IL+demos+refined"]["frames"] == by_model["IL-equal-demos"]["frames"] == 2000
+    assert by_model["IL+refined"]["frames"] == 1000
+    assert by_model["IL+demos+refined"]["counterfactual"] == {"of": "il-demos-world-model"}
+    cfg = takeover_check.parse(sets)
+    pairs = takeover_check.pairs(cfg, 0.0)
+    assert ("IL+demos+refined", "IL-equal-demos") in pairs
+    assert ("IL+demos+refined", "IL+refined") in pairs and ("IL+refined", "IL") in pairs
+    assert takeover_check.needs_second_pool(cfg)
+    plan = takeover_check.plan(cfg)
+    assert plan["demos"] == 3 and plan["train il-equal-demos"] == 3  # σ 0, its pool, σ 0.5
+    assert all(typical_s(kind) is not None for kind in plan), plan
+
+
 @pytest.mark.parametrize(
     ("sets", "says"),
     [(["--set", "rounds=0"], "rounds: 0"), (["--set", "rounds=-1"], "rounds: -1"),
-     ([*AT_EQUAL_DATA, "--set", "refine_in_demos=true"], "refine_in_demos: needs rounds"),
+     ([*AT_EQUAL_DATA, "--set", "refine_in_demos=true"], "give refine_demos_noise"),
      ([*AT_EQUAL_DATA, "--set", "refine_with_drives=true"], "refine_with_drives: needs rounds")],
 )  # fmt: skip
 def test_rounds_0_needs_refine_and_takes_no_option_built_on_rounds(capsys, sets, says):
