@@ -194,7 +194,7 @@ def chain(cfg: TakeoverConfig, step: StudyStep, sigma: float, seed: int, rows: l
         il_equal(f"IL-equal-takeovers{k}", frames)
     if cfg.refine:
         world_demos = expert.with_name(f"expert-noise{demos_noise(cfg, sigma):g}")
-        more = frames_in([world_demos]) if world_demos != expert and cfg.refine_in_demos else 0
+        more = frames_in([world_demos]) if in_other_demos(cfg, sigma) else 0
         models.update(refined(cfg, step, tag, seed, data, previous, frames, world_demos, more))
         if more:  # IL on as many frames as the world model's refinement saw: its pair
             il_equal(il_at_frames_of(cfg, sigma, "demos"), frames + more)
@@ -338,9 +338,14 @@ def needs_second_pool(cfg: TakeoverConfig) -> bool:
     """Whether any chain trains IL at equal frames (the second demonstration pool's use): not
     when none has rounds (`rounds=0`: refinement's pair is IL itself) unless a world model
     learns another σ's demonstrations too (its pair: IL at as many frames)."""
-    mine = [(for_noise(cfg, s), s) for s in cfg.demo_noise]
-    return any(c.rounds or (c.refine and c.refine_in_demos and demos_noise(c, s) != s)
-               for c, s in mine)  # fmt: skip
+    return any(for_noise(cfg, s).rounds or in_other_demos(for_noise(cfg, s), s)
+               for s in cfg.demo_noise)  # fmt: skip
+
+
+def in_other_demos(cfg: TakeoverConfig, sigma: float) -> bool:
+    """Whether σ's chains also refine in a world model of another σ's demonstrations
+    (`refine_demos_noise`): their frames count, and IL trains at as many (il_equal_demos)."""
+    return cfg.refine and cfg.refine_in_demos and demos_noise(cfg, sigma) != sigma
 
 
 def plan(cfg: TakeoverConfig) -> Counter[str]:
@@ -364,7 +369,7 @@ def plan(cfg: TakeoverConfig) -> Counter[str]:
             {"drive": n * (1 + bool(mine.more_drive_tracks))} if mine.refine_with_drives else {}
         )
         kinds += {"drift": refined_rows * n} if mine.refine_drift else {}
-        if mine.refine_in_demos and demos_noise(mine, sigma) != sigma:
+        if in_other_demos(mine, sigma):
             kinds += {f"train {il_equal_demos(r).lower()}": n, "eval": n}
         if mine.drift_members:
             kinds += {f"train takeovers{r}-drives-crashes-only-member": mine.drift_members * n}
