@@ -20,7 +20,9 @@ that and nothing else, with nothing chosen by driving:
             world_model_steps, then world_model_steps_next), crash labels only
         policy_k = policy_{k-1} refined in it (the take-over check's refinement: the study's
             safeguards, refine_steps) on every recorded frame (demonstrations + drives); at the
-            last loop also without the uncertainty term ("loop<K>-unc", the paper's ablation)
+            last loop also without the uncertainty term ("loop<K>-unc", the paper's ablation);
+            `refine_form=paper` or `paper-corrected` refines in the paper's form instead, in a
+            loop of its own ("paper-corrected-loop<k>", its own drives; the OUT and IL shared)
 
 Rows: "IL", "loop<k>", "loop<K>-unc" and "IL-equal-loop<K>" (IL on the demonstrations topped up
 from the second clean pool to the last loop's recorded frames, the drives included: what a real
@@ -50,9 +52,17 @@ from bench.dirl_steps import evaluate, exploration_drives, frames_in, il_equal_d
 from bench.dirl_table import plot
 from bench.study_config import StudyConfig
 from bench.study_steps import StudyStep, output_of
-from bench.takeover_refine import collision_labels, refine_cmd, world_model_cmd
+from bench.takeover_refine import (
+    PAPER_CORRECTED,
+    PAPER_FORM,
+    collision_labels,
+    refine_cmd,
+    world_model_cmd,
+)
 
 WORLD_LEARNS = ("drives", "all")
+# refine_form → the refinement flags on top of the study's (its safeguards)
+FORMS = {"safeguards": [], "paper": PAPER_FORM, "paper-corrected": PAPER_CORRECTED}
 
 
 @dataclass
@@ -67,6 +77,12 @@ class LoopConfig:
     # part 2: frames where the action is a function of the image teach a world model to ignore
     # the steering); "all", the demonstrations too
     world_learns: str = "drives"
+    # how each loop refines: "safeguards", the take-over check's (the study's anchor, imitation
+    # term, centred gradient, p̂ corrected); "paper", the paper's pure form (all four off);
+    # "paper-corrected", the paper's with p̂ corrected (every constraint off). Measured (README
+    # part 2): in a world model of drives alone the paper's forms moved the plan far and
+    # crashed, where no recorded drive had gone — what this loop records next
+    refine_form: str = "safeguards"
     eval_tracks: str = StudyConfig.eval_tracks
     parallel: int = 2
     study: StudyConfig = field(default_factory=StudyConfig)
@@ -87,24 +103,26 @@ def chain(cfg: LoopConfig, step: StudyStep, sigma: float, seed: int, rows: list[
     drives: list[Path] = []
     previous, frames = il, expert_frames
     for k in range(1, cfg.loops + 1):
-        drives.append(exploration_drives(study, step, tag, k, previous, kind="loop-drives"))
+        loop = loop_name(cfg, k)
+        kind = f"{loop_stem(cfg)}-drives"
+        drives.append(exploration_drives(study, step, tag, k, previous, kind=kind))
         data, frames = [expert, *drives], expert_frames + frames_in(drives)
-        world = runs / f"loop{k}-world-model"
+        world = runs / f"{loop}-world-model"
         steps = study.world_model_steps if k == 1 else study.world_model_steps_next
         learns = drives if cfg.world_learns == "drives" else data
         step(f"train-{tag}-{world.name}", world_model_cmd(study, learns, world, previous, seed,
              labels, ("--set", f"world_model_steps={steps}")), world / ".done")  # fmt: skip
         for unc in (False, True)[: 1 + (k == cfg.loops)]:
-            name = f"loop{k}{'-unc' if unc else ''}"
-            run = runs / f"loop{k}-refined{'-unc' if unc else ''}"
-            flags = ["--no-uncertainty"] if unc else []
+            name = f"{loop}{'-unc' if unc else ''}"
+            run = runs / f"{loop}-refined{'-unc' if unc else ''}"
+            flags = [*FORMS[cfg.refine_form], *(["--no-uncertainty"] if unc else [])]
             step(f"train-{tag}-{run.name}", refine_cmd(study, data, run, world, seed, labels,
                  flags), run / ".done")  # fmt: skip
             models[name] = (run, frames, world)
-        previous = runs / f"loop{k}-refined"
+        previous = runs / f"{loop}-refined"
     extra = Path(cfg.out) / "data" / f"extra-noise{sigma:g}"
     equal = il_equal_data(expert, extra, expert_frames, frames)
-    name = f"IL-equal-loop{cfg.loops}"
+    name = f"IL-equal-{loop_name(cfg, cfg.loops)}"
     run = runs / name.lower()
     step(f"train-{tag}-{run.name}", iterate_cmd(study, equal, run, *imitation_flags(study, seed)),
          run / ".done")  # fmt: skip
@@ -154,23 +172,36 @@ def world_table(rows: list[dict]) -> str:
 def pairs(cfg: LoopConfig) -> list[tuple[str, str]]:
     """The last loop against IL at its frames and its -unc; every loop against IL (the policy
     the loop started from) and the loop before."""
-    last = f"loop{cfg.loops}"
-    out = [(last, f"IL-equal-loop{cfg.loops}"), (last, f"{last}-unc")]
+    last = loop_name(cfg, cfg.loops)
+    out = [(last, f"IL-equal-{last}"), (last, f"{last}-unc")]
     for k in range(1, cfg.loops + 1):
-        out += [(f"loop{k}", "IL")] + ([(f"loop{k}", f"loop{k - 1}")] if k > 1 else [])
+        loop = loop_name(cfg, k)
+        out += [(loop, "IL")] + ([(loop, loop_name(cfg, k - 1))] if k > 1 else [])
     return out
 
 
 def plan(cfg: LoopConfig) -> Counter[str]:
     """The check's steps by kind (the progress count and the ETA's weights)."""
     n = len(cfg.seeds) * len(cfg.demo_noise)
+    equal = f"train il-equal-{loop_stem(cfg)}"
     kinds = Counter({"demos": 2 * len(cfg.demo_noise), "train il": n, "drive": cfg.loops * n,
-                     "train il-equal-loop": n, "eval": (cfg.loops + 3) * n})  # fmt: skip
+                     equal: n, "eval": (cfg.loops + 3) * n})  # fmt: skip
     for k in range(1, cfg.loops + 1):
-        kinds[f"train loop{k}-world-model"] += n
-        kinds[f"train loop{k}-refined"] += n
-    kinds[f"train loop{cfg.loops}-refined-unc"] += n
+        kinds[f"train {loop_name(cfg, k)}-world-model"] += n
+        kinds[f"train {loop_name(cfg, k)}-refined"] += n
+    kinds[f"train {loop_name(cfg, cfg.loops)}-refined-unc"] += n
     return kinds
+
+
+def loop_stem(cfg: LoopConfig) -> str:
+    """What names this form's loops, their rows, runs, drives and results: "loop", or
+    "<form>-loop" for a refine_form other than the safeguards (so forms share an OUT and IL)."""
+    return "loop" if cfg.refine_form == "safeguards" else f"{cfg.refine_form}-loop"
+
+
+def loop_name(cfg: LoopConfig, k: int) -> str:
+    """Loop k's name: "loop<k>" ("paper-corrected-loop<k>", …)."""
+    return f"{loop_stem(cfg)}{k}"
 
 
 def parse(argv: list[str] | None) -> LoopConfig:
@@ -179,6 +210,8 @@ def parse(argv: list[str] | None) -> LoopConfig:
         p.error(f"loops: {cfg.loops} (1 to 10)")
     if cfg.world_learns not in WORLD_LEARNS:
         p.error(f"world_learns: {cfg.world_learns!r} (one of {', '.join(WORLD_LEARNS)})")
+    if cfg.refine_form not in FORMS:
+        p.error(f"refine_form: {cfg.refine_form!r} (one of {', '.join(FORMS)})")
     return dataclasses.replace(cfg, study=study_for(p, cfg))
 
 
@@ -188,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     rows = run_check(cfg, dict(plan(cfg)), chain)
-    name = f"loop{suffix(cfg)}-noise{'_'.join(f'{x:g}' for x in cfg.demo_noise)}"
+    name = f"{loop_stem(cfg)}{suffix(cfg)}-noise{'_'.join(f'{x:g}' for x in cfg.demo_noise)}"
     figure = out / f"completion_vs_frames-{name}.png"
     plot(rows, figure, "IL and refinement with the loop closed, mean ± std over seeds")
     text = write_results(cfg, rows, started, f"-{name}", lambda mine: pairs(cfg) if mine else [])

@@ -133,6 +133,7 @@ def test_pairs_judge_the_last_loop_against_il_at_its_frames_and_its_unc():
         ("loops=0", "loops: 0 (1 to 10)"),
         ("world_learns=demos", "world_learns: 'demos'"),
         ("study.no_such_field=1", "no_such_field"),
+        ("refine_form=pure", "refine_form: 'pure'"),
     ],
 )
 def test_a_bad_setting_ends_in_one_line_and_exit_code_2(capsys, setting, says):
@@ -141,3 +142,30 @@ def test_a_bad_setting_ends_in_one_line_and_exit_code_2(capsys, setting, says):
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert says in err and "Traceback" not in err
+
+
+def test_the_paper_corrected_form_refines_with_every_constraint_off_in_its_own_loop(
+    monkeypatch, tmp_path
+):
+    sets = ("--set", "loops=2", "--set", "refine_form=paper-corrected")
+    argv, rows = record_chain(monkeypatch, tmp_path, *sets)
+    runs, tag = tmp_path / "runs" / "noise0-seed5", "train-noise0-seed5"
+    refined = sets_of(argv[f"{tag}-paper-corrected-loop2-refined"])
+    assert {"refine_w_anchor=0", "refine_w_imitation=0", "refine_center_gradient=false"} <= set(
+        refined
+    )
+    corrections = [s for s in refined if s.startswith("collision_prior_correction=")]
+    assert corrections[-1] == "collision_prior_correction=true"  # the later --set wins
+    # its own drives, world models and rows: it shares the OUT and IL with the safeguards' loop
+    drive = argv["drive-noise0-seed5-paper-corrected-loop-drives2"]
+    assert value_of(drive, "--model") == str(runs / "paper-corrected-loop1-refined" / "policy.onnx")
+    assert [r["model"] for r in rows] == [
+        "IL", "paper-corrected-loop1", "paper-corrected-loop2", "paper-corrected-loop2-unc",
+        "IL-equal-paper-corrected-loop2",
+    ]  # fmt: skip
+    cfg = refine_loop.parse(["--set", "seeds=5", *sets])
+    taken = Counter(step_kind(name) for name in argv)
+    taken["demos"] += 2
+    taken["eval"] += 5
+    assert refine_loop.plan(cfg) == taken
+    assert refine_loop.pairs(cfg)[0] == ("paper-corrected-loop2", "IL-equal-paper-corrected-loop2")
