@@ -34,7 +34,8 @@ beside them.
 Measured (2026-11-28, README part 12, σ 0, seeds 5-7): with the safeguards three loops left IL
 where it was (−0.015 ± 0.013) and below IL at equal recorded frames (−0.036 ± 0.019), the
 world models at AUROC 0.81-0.91; in the paper's form p̂ corrected the first loop broke driving
-and the next two did not repair it (−0.71). -unc level in both.
+and the next two did not repair it (−0.71). -unc level in both. At σ 1.0 (τ 0.5, README part
+13) the safeguards' loop was level with IL (+0.019 ± 0.027) and 0.14 below IL at equal frames.
 """
 
 from __future__ import annotations
