@@ -25,8 +25,8 @@ that and nothing else, with nothing chosen by driving:
             loop of its own ("paper-corrected-loop<k>", its own drives; the OUT and IL shared)
 
 Rows: "IL", "loop<k>", "loop<K>-unc" and "IL-equal-loop<K>" (IL on the demonstrations topped up
-from the second clean pool to the last loop's recorded frames, the drives included: what a real
-car records counts). Each loop row carries its world model's counterfactual check
+from the same σ's second pool to the last loop's recorded frames, the drives included: what a
+real car records counts). Each loop row carries its world model's counterfactual check
 (`carrt-counterfactual`'s AUROC and ρ on the held-out placements). The results go to
 OUT/results-loop<suffix>-noise<σs>.json and table-…md, the plot of completion against frames
 beside them.
