@@ -44,10 +44,8 @@ test: $(STAMP) core
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
 	$(PY) -m pytest -q -m "not install" --ignore-glob='tests/test_train_*' \
-		--ignore-glob='tests/test_research_train_*' \
-		--ignore=tests/test_export.py --ignore=tests/test_dirl_sim.py
-	$(PY) -m pytest -q tests/test_train_*.py $(wildcard tests/test_research_train_*.py) \
-		tests/test_export.py $(wildcard tests/test_dirl_sim.py)
+		--ignore-glob='tests/test_research_train_*' --ignore=tests/test_export.py
+	$(PY) -m pytest -q tests/test_train_*.py tests/test_research_train_*.py tests/test_export.py
 	$(PY) -m pytest -q -m install
 	$(MAKE) test-py310
 

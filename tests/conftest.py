@@ -44,8 +44,8 @@ def sim_episodes(tmp_path_factory):
 # Test modules that need the train extra (torch, training/, export/): `make test` runs every test
 # under 3.11, then everything else with --runtime-only under 3.10 in a venv without torch.
 TRAIN_TEST_MODULES = (
-    "test_train_*.py", "test_export.py", "test_dirl_sim.py",
-    "test_bench_redrive.py",  # bench.redrive reads training.sim_data's held-out placements
+    "test_train_*.py", "test_export.py", "test_research_train_*.py",
+    "test_research_redrive.py",  # research.redrive reads training.sim_data's held-out placements
 )  # fmt: skip
 
 

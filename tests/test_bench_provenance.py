@@ -9,9 +9,10 @@ from importlib import metadata
 
 import numpy as np
 
-from bench import check_steps, provenance
-from bench.takeover_check import TakeoverConfig
+from bench import provenance
 from carrt.version import code_version
+from research import check_steps
+from research.takeover_check import TakeoverConfig
 
 
 def test_the_environment_names_the_code_and_the_installed_libraries():
