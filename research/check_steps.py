@@ -102,7 +102,7 @@ def read_sets(argv: list[str] | None, cfg, module: str, doc: str, name: str):
     profile, steps, placements: e.g. `study.profile=paper` on a GPU). Returns the parser (for
     one-line errors, exit code 2) and the config."""
     p = argparse.ArgumentParser(prog=f"python -m {module}", description=doc.split("\n")[0])
-    where = f"{name} in {module.replace('.', '/')}.py"
+    where = f"{name} in {type(cfg).__module__.replace('.', '/')}.py"
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help=f"a {where} field, or study.FIELD for a StudyConfig one in "
                    "research/study_config.py; tuples comma-separated")  # fmt: skip

@@ -26,8 +26,8 @@ import time
 from pathlib import Path
 
 from bench.provenance import environment
+from carrt.arg_types import parse_int_list
 from carrt.errors import EXIT_USAGE, UserError
-from carrt.eval_cmd import parse_int_list
 from carrt.policy import file_sha256
 from research.dirl_table import BEFORE_REFINEMENT, comparison, table
 from training.sim_data import EVALUATION_TRACKS

@@ -9,16 +9,12 @@ this one says which world models refinement runs in (`sources`), which forms eac
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from research.dirl_steps import exploration_drives, frames_in, iterate_cmd, run_settings
 from research.drift_steps import drift, member_runs
+from research.study_config import StudyConfig
 from research.study_steps import StudyStep
-
-if TYPE_CHECKING:
-    from research.study_config import StudyConfig
-    from research.takeover_check import TakeoverConfig
-
+from research.takeover_config import TakeoverConfig
 
 # iterate.py settings of the paper's refinement: every safeguard of training/config.py off
 PAPER_FORM = [

@@ -12,7 +12,7 @@ import numpy as np
 from bench import provenance
 from carrt.version import code_version
 from research import check_steps
-from research.takeover_check import TakeoverConfig
+from research.takeover_config import TakeoverConfig
 
 
 def test_the_environment_names_the_code_and_the_installed_libraries():
