@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 
 from carrt import layouts
-from carrt.arg_types import finite_positive
+from carrt.arg_types import finite_positive, parse_int_list
 from carrt.errors import UserError
 
 
@@ -44,28 +44,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--json", help="also write per-run and aggregate numbers here")
     parser.set_defaults(func=run_eval)
-
-
-def parse_int_list(text: str, what: str) -> list[int]:
-    """'100-104,120' → [100, 101, 102, 103, 104, 120]; anything else is a UserError."""
-    out: list[int] = []
-    for part in str(text).split(","):
-        part = part.strip()
-        try:
-            if "-" in part[1:]:
-                lo, hi = (int(p) for p in part.split("-", 1))
-                if hi < lo:
-                    raise ValueError
-                out.extend(range(lo, hi + 1))
-            else:
-                out.append(int(part))
-        except ValueError:
-            raise UserError(
-                f"--{what}: {text!r} is not a list of numbers and ranges like 100-104,120"
-            ) from None
-    if any(v < 0 for v in out):
-        raise UserError(f"--{what}: seeds are >= 0, got {text!r}")
-    return out
 
 
 def run_eval(args: argparse.Namespace) -> int:

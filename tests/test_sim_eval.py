@@ -7,9 +7,9 @@ import json
 import pytest
 from onnx_models import build_policy
 
+from carrt.arg_types import parse_int_list
 from carrt.cli import main
 from carrt.errors import UserError
-from carrt.eval_cmd import parse_int_list
 from carrt.sim.evaluate import evaluate
 
 

@@ -34,11 +34,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from carrt.arg_types import finite_non_negative, finite_positive
+from carrt.arg_types import finite_non_negative, finite_positive, parse_int_list
 from carrt.episodes.format import write_json_atomic
 from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import EXIT_USAGE, UserError
-from carrt.eval_cmd import parse_int_list
 from carrt.sim.pool import worker_pool
 
 # Held out, never recorded for training: `carrt eval`'s default 100-104, 105-124 (the study's

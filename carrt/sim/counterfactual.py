@@ -29,8 +29,8 @@ import sys
 
 import numpy as np
 
+from carrt.arg_types import parse_int_list
 from carrt.errors import EXIT_USAGE, UserError
-from carrt.eval_cmd import parse_int_list
 from carrt.sim.expert import ScriptedExpert
 from carrt.sim.render import Renderer
 from carrt.sim.track import LAYOUTS, project

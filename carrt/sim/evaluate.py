@@ -15,6 +15,7 @@ Numbers per run, then mean ± std over every (placement, seed) run:
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import io
 import math
@@ -74,8 +75,10 @@ def run_one(
     seed: int,
     intervene: bool = False,
 ) -> dict[str, Any]:
-    """One drive through the CLI's own code path; its chatter is swallowed, its metrics kept."""
-    from carrt.cli import build_parser
+    """One drive through the commands' own parser and session; its chatter is swallowed, its
+    metrics kept. The parser is carrt.session's (teleop and drive), not the CLI's: the
+    simulator sits below the command line and never imports it."""
+    from carrt.session import add_parsers
 
     if model_path is None:
         argv = ["teleop", "--sim", "--expert", "auto"]
@@ -85,7 +88,9 @@ def run_one(
             argv.append("--expert-intervene")
     argv += ["--layout", layout, "--track-seed", str(track), "--duration", str(seconds)]
     argv += ["--seed", str(seed)]
-    args = build_parser().parse_args(argv)
+    parser = argparse.ArgumentParser(prog="carrt")
+    add_parsers(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
     got: dict[str, Any] = {}
     args.on_metrics = lambda result, recorder: got.update(result=result, recorder=recorder)
     with contextlib.redirect_stdout(io.StringIO()):
