@@ -1,5 +1,7 @@
-# Two commands for a fresh machine: `make demo` and `make test`. Each sets up .venv on first use
-# (and again whenever pyproject.toml changes), then runs.
+# Two commands for a fresh machine: `make demo` and `make test`. Each first checks the system
+# packages it needs (.ci/system-packages: installs the missing ones with apt-get as root or with
+# passwordless sudo, or stops with one line naming them), sets up .venv on first use (and again
+# whenever pyproject.toml changes), then runs.
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -14,16 +16,27 @@ STAMP310 := $(VENV310)/.installed
 FW_SOURCES := $(wildcard firmware_bridge/firmware/carrt_fw/src/*.[ch] firmware_bridge/firmware/host/*.c) \
 	firmware_bridge/core_sources.py setup.py
 
-.PHONY: demo test test-py310 bench study demo-policy il-curve lint format clean firmware emulator core
+.PHONY: demo test test-py310 bench study demo-policy il-curve lint format clean firmware emulator core \
+	system-demo system-test
 
-$(STAMP): pyproject.toml setup.py
+# The system packages: `demo` needs gcc, make and a Python with venv and headers; `test` also the
+# tests' tools (Xvfb, xdotool, Chromium, the AVR toolchain, simavr, git, Python 3.10). Only checks
+# when they are there (a fraction of a second), so it runs every time.
+SYSTEM_PACKAGES = PYTHON='$(PYTHON)' PYTHON310='$(PYTHON310)' ARDUINO_AVR='$(ARDUINO_AVR)' \
+	SIMAVR_INCLUDE='$(SIMAVR_INCLUDE)' .ci/system-packages
+system-demo:
+	@$(SYSTEM_PACKAGES) demo
+system-test:
+	@$(SYSTEM_PACKAGES) test
+
+$(STAMP): pyproject.toml setup.py | system-demo
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip "setuptools>=77"
 	$(PY) -m pip install --quiet torch==2.13.0
 	$(PY) -m pip install --quiet -e '.[laptop,dev,train]'
 	touch $(STAMP)
 
-$(STAMP310): pyproject.toml setup.py
+$(STAMP310): pyproject.toml setup.py | system-test
 	$(PYTHON310) -m venv $(VENV310)
 	$(PY310) -m pip install --quiet --upgrade pip "setuptools>=77"
 	$(PY310) -m pip install --quiet -e '.[laptop,dev]'
@@ -34,13 +47,13 @@ core: $(STAMP)
 	$(PY) setup.py --quiet build_ext --inplace
 	@if [ -x $(PY310) ]; then $(PY310) setup.py --quiet build_ext --inplace; fi
 
-demo: $(STAMP) core
+demo: system-demo $(STAMP) core
 	$(PY) -m carrt.demo
 
 # The whole suite under 3.11 (with torch) in three processes: runtime, training (never in a
 # process that ran the simulator: see tests/e2e_rig.py record_sim_dataset), install; then the
 # runtime suite under 3.10 (without torch).
-test: $(STAMP) core
+test: system-test $(STAMP) core
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
 	$(PY) -m pytest -q -m "not install" --ignore-glob='tests/test_train_*' \
@@ -49,7 +62,7 @@ test: $(STAMP) core
 	$(PY) -m pytest -q -m install
 	$(MAKE) test-py310
 
-test-py310: $(STAMP310) core
+test-py310: system-test $(STAMP310) core
 	$(PY310) -m pytest -q --runtime-only -m "not install" -p no:cacheprovider
 
 bench: $(STAMP)
