@@ -14,6 +14,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -35,18 +36,23 @@ NO_PY310 = (
 
 def write_tool(folder: Path, name: str, body: str) -> None:
     path = folder / name
+    assert not path.exists() and not path.is_symlink(), path  # never write through a link
     path.write_text("#!/bin/sh\n" + body + "\n")
     path.chmod(0o755)
 
 
-def bare_machine(tmp: Path, *, uid: int, sudo: str | None, apt: bool, tools=("bash",)) -> dict:
+def bare_machine(
+    tmp: Path, *, uid: int | None, sudo: str | None, apt: bool, tools=("bash",)
+) -> dict:
     """The environment of a machine without the packages: PATH = a folder with `tools` (linked
-    to the real ones) and the fakes; the header folders the script checks point into tmp."""
+    to the real ones) and the fakes (`id` saying `uid`, unless None: then the real one); the
+    header folders the script checks point into tmp."""
     bin_dir = tmp / "bin"
     bin_dir.mkdir()
     for tool in tools:
         (bin_dir / tool).symlink_to(shutil.which(tool))
-    write_tool(bin_dir, "id", f'[ "$1" = -u ] && echo {uid}')
+    if uid is not None:
+        write_tool(bin_dir, "id", f'[ "$1" = -u ] && echo {uid}')
     log = tmp / "calls.log"
     if sudo == "password":
         write_tool(
@@ -99,6 +105,34 @@ def test_without_root_or_sudo_it_stops_with_one_line_naming_the_packages(tmp_pat
     assert done.stderr == missing_line("test", ["gcc", "make", *TEST_TOOLS], NO_PY310)
     # It asked sudo whether a password is needed, and ran no apt-get.
     assert calls(tmp_path) == ["sudo -n true"]
+
+
+def test_as_a_real_user_without_root_it_stops_the_same_way():
+    """No fake `id`: the real one, as this user, or as nobody (setpriv) when the tests run as
+    root; the script and the bare PATH in a folder every user can read."""
+    folder = Path(tempfile.mkdtemp())
+    try:
+        folder.chmod(0o755)
+        env = bare_machine(folder, uid=None, sudo=None, apt=True, tools=("bash", "id"))
+        shutil.copy2(SCRIPT, folder / "system-packages")
+        as_user = (
+            []
+            if os.geteuid()
+            else [shutil.which("setpriv"), "--reuid=65534", "--regid=65534", "--clear-groups"]
+        )
+        done = subprocess.run(
+            [*as_user, str(folder / "system-packages"), "test"],
+            env=env, capture_output=True, text=True, timeout=60, check=False,
+        )  # fmt: skip
+        assert done.returncode == 2
+        # (The interpreter may be out of nobody's reach, then the line says so too.)
+        names = " ".join(["gcc", "make", *TEST_TOOLS])
+        assert done.stderr.startswith(f"make test: missing system packages {names}: run  sudo")
+        assert done.stderr.count("\n") == 1
+        assert done.stderr.endswith(f"; {NO_PY310}, then make test again\n")
+        assert calls(folder) == []
+    finally:
+        shutil.rmtree(folder)
 
 
 def test_demo_needs_only_the_compiler_make_and_the_python(tmp_path):
