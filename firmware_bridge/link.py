@@ -7,13 +7,14 @@ e-stop is written at once from the caller's thread instead of waiting for the ne
 A receiver thread timestamps telemetry on arrival so its age is a measurement, and it owns
 reconnection: when the cable is pulled the port errors, the link reopens it when it comes back,
 re-handshakes, and drops any arm request so the car stays stopped until it is armed again.
-The receiving half (handshake, reconnection, dispatch of what arrives) is in link_receive.py;
+The receiving half (handshake, reconnection, dispatch of what arrives) is a part the link owns, a
+`Receiver` (link_receive.py), that reports to the link through the `LinkEvents` methods below;
 the errors and records the link hands out are in link_types.py.
 """
 
 from __future__ import annotations
 
-import collections
+import contextlib
 import itertools
 import os
 import threading
@@ -24,8 +25,8 @@ from typing import Any
 import serial
 
 from firmware_bridge import messages as m
-from firmware_bridge.codec import FrameDecoder, encode_frame
-from firmware_bridge.link_receive import ReceivePath, _seq_reached
+from firmware_bridge.codec import encode_frame
+from firmware_bridge.link_receive import Receiver
 from firmware_bridge.link_types import (
     DEFAULT_BAUD,
     ArmRefused,
@@ -36,13 +37,14 @@ from firmware_bridge.link_types import (
     PortUnavailable,
     ProtocolMismatch,
     TelemetrySample,
+    _seq_reached,
     _to_fixed,
     open_port,
 )
 from firmware_bridge.timing import SEND_PERIOD_S
 
 
-class BoardLink(ReceivePath):
+class BoardLink:
     """A live, self-healing connection to a carrt board (real or virtual)."""
 
     def __init__(
@@ -56,22 +58,27 @@ class BoardLink(ReceivePath):
     ) -> None:
         self.port = port
         self.send_period_s = send_period_s
-        self.baud = baud
-        self.handshake_timeout_s = handshake_timeout_s
         self.clock = clock
         self.counters = LinkCounters()
-        self.board: BoardInfo | None = None
         self.error: LinkError | None = (
             None  # set when the link gave up (e.g. mismatch on reconnect)
         )
         self.on_reboot: Callable[[BoardInfo], None] | None = None
         self.on_telemetry: Callable[[TelemetrySample], None] | None = None
+        self._seq = itertools.count()
+        self.receiver = Receiver(
+            self,
+            port=port,
+            baud=baud,
+            handshake_timeout_s=handshake_timeout_s,
+            clock=clock,
+            counters=self.counters,
+            next_seq=self._next_seq,
+        )
 
         self._ser: serial.Serial | None = None
-        self._decoder = FrameDecoder()
         self._write_lock = threading.Lock()
         self._state_lock = threading.Lock()
-        self._seq = itertools.count()
         self._steering = 0
         self._throttle = 0
         self._decision_id = 0
@@ -81,9 +88,6 @@ class BoardLink(ReceivePath):
         self._arm_sent_seq: int | None = None
         self._clear_sent_seq: int | None = None
         self.last_arm_refusal: m.ArmRefusal | None = None
-        self._telemetry: TelemetrySample | None = None
-        self._telemetry_times: collections.deque[float] = collections.deque(maxlen=100)
-        self._waiters: dict[tuple[int, int], tuple[threading.Event, list[Any]]] = {}
         self._connected = threading.Event()
         self._running = False
         self._threads: list[threading.Thread] = []
@@ -93,17 +97,17 @@ class BoardLink(ReceivePath):
         """Open, flush, handshake (raises LinkError subclasses), then start the threads."""
         ser = open_port(self.port, self.baud)
         try:
-            self._handshake(ser)
+            self.receiver.handshake(ser)
         except Exception:
             ser.close()
             raise
         self._ser = ser
         self._connected.set()
         self._running = True
-        for target, name in ((self._receive_loop, "link-rx"), (self._send_loop, "link-tx")):
-            thread = threading.Thread(target=target, name=name, daemon=True)
-            thread.start()
-            self._threads.append(thread)
+        self.receiver.start(ser)
+        thread = threading.Thread(target=self._send_loop, name="link-tx", daemon=True)
+        thread.start()
+        self._threads.append(thread)
         return self
 
     def _leave_disarmed(self, frames: int) -> None:
@@ -119,6 +123,7 @@ class BoardLink(ReceivePath):
         """Leave the board disarmed (neutral outputs), stop the threads, release the port."""
         self._leave_disarmed(frames=3)  # a few, in case one is lost on a noisy line
         self._running = False
+        self.receiver.stop()
         for thread in self._threads:
             thread.join(timeout=1.0)
         self._threads.clear()
@@ -136,6 +141,76 @@ class BoardLink(ReceivePath):
     @property
     def connected(self) -> bool:
         return self._connected.is_set()
+
+    # the link's settings and what its receiver learned, read where they always were
+    baud = property(lambda self: self.receiver.baud)
+    handshake_timeout_s = property(lambda self: self.receiver.handshake_timeout_s)
+    board = property(lambda self: self.receiver.board)
+    _telemetry = property(lambda self: self.receiver.telemetry)
+
+    def receive(self, data: bytes) -> None:
+        """Bytes from the board, from whichever transport carried them (the receiver thread's
+        serial port, or the in-process core of firmware_bridge/direct.py)."""
+        self.receiver.feed(data)
+
+    # ------------------------------------------------------------------ LinkEvents
+    def port_back(self, ser: serial.Serial) -> None:
+        with self._write_lock:
+            self._ser = ser
+        self.counters.reconnects += 1
+        self._connected.set()
+
+    def port_lost(self) -> None:
+        self._connected.clear()
+        with self._state_lock:
+            self._want_arm = False
+            self._clear_pending = False
+        with self._write_lock:
+            if self._ser is not None:
+                with contextlib.suppress(serial.SerialException, OSError):
+                    self._ser.close()
+                self._ser = None
+        self.counters.disconnects += 1
+
+    def telemetry_arrived(self, sample: TelemetrySample) -> None:
+        self._watch_arming(sample.telemetry)
+        if self.on_telemetry is not None:
+            self.on_telemetry(sample)
+
+    def board_rebooted(self, info: BoardInfo) -> None:
+        with self._state_lock:
+            self._want_arm = False
+        if self.on_reboot is not None:
+            self.on_reboot(info)
+
+    def board_mismatched(self, error: ProtocolMismatch) -> None:
+        self.error = error
+        self.estop()
+
+    def gave_up(self, error: LinkError) -> None:
+        self.error = error
+        self._running = False
+
+    def _watch_arming(self, tel: m.Telemetry) -> None:
+        """Follow the board: a finished clear stops the CLEAR flag, and once the board has
+        left ARMED on its own, re-arming must be a new, explicit request."""
+        with self._state_lock:
+            left_latch = tel.state not in (m.State.ESTOP, m.State.FAILSAFE)
+            sent = self._clear_sent_seq
+            if (
+                self._clear_pending
+                and left_latch
+                and sent is not None
+                and _seq_reached(tel.last_seq, sent)
+            ):
+                self._clear_pending = False
+            sent = self._arm_sent_seq
+            if self._want_arm and sent is not None and _seq_reached(tel.last_seq, sent):
+                if not left_latch:
+                    self._want_arm = False
+                elif tel.state == m.State.DISARMED and tel.arm_refusal:
+                    self._want_arm = False  # refused: a new press must make a new edge
+                    self.last_arm_refusal = m.ArmRefusal(tel.arm_refusal)
 
     # ------------------------------------------------------------------ commands
     def set_command(
@@ -256,27 +331,9 @@ class BoardLink(ReceivePath):
         raise ArmRefused(f"board did not arm within {timeout_s:.1f} s")
 
     def wait_until_still(self, still_s: float = 0.15, timeout_s: float = 5.0) -> None:
-        """Wait until the encoder has not moved for `still_s` (the board refuses to arm before).
-
-        The board checks 100 ms of stillness itself; waiting a little longer here means the
-        arm request that follows is not refused for a tick that was still in flight.
-        Stillness is measured between telemetry frames (their receive times), not on the host's
-        clock: on a busy machine no new frame may arrive for a while, and an old frame's ticks
-        are no evidence that the wheels stopped since.
-        """
-        deadline = self.clock() + timeout_s
-        last_ticks: int | None = None
-        since = 0.0
-        while self.clock() < deadline:
-            sample = self._telemetry
-            if sample is not None:
-                ticks = sample.telemetry.encoder_ticks
-                if ticks != last_ticks:
-                    last_ticks, since = ticks, sample.received_at
-                elif sample.received_at - since >= still_s:
-                    return
-            time.sleep(0.005)
-        raise LinkError(f"wheels still turning after {timeout_s:.1f} s (encoder keeps ticking)")
+        """Wait until the encoder has not moved for `still_s` (the board refuses to arm before);
+        see Receiver.wait_until_still."""
+        self.receiver.wait_until_still(still_s, timeout_s)
 
     def disarm(self) -> None:
         with self._state_lock:
@@ -297,7 +354,7 @@ class BoardLink(ReceivePath):
         return m.State.DISARMED if sample is None else m.State(sample.telemetry.state)
 
     def telemetry_rate_hz(self) -> float:
-        times = list(self._telemetry_times)
+        times = list(self.receiver.telemetry_times)
         if len(times) < 2 or times[-1] == times[0]:
             return 0.0
         return (len(times) - 1) / (times[-1] - times[0])
@@ -317,11 +374,10 @@ class BoardLink(ReceivePath):
         return self._request(config, (m.ConfigAck.TYPE, None), timeout_s)
 
     def _request(self, message: Any, key: tuple[int, int | None], timeout_s: float) -> Any:
-        event, box = threading.Event(), []
         seq = self._next_seq()
         if key[1] is None:  # answered by sequence number (CONFIG_ACK)
             key = (key[0], seq)
-        self._waiters[key] = (event, box)
+        event, box = self.receiver.expect(key)
         try:
             self._write(encode_frame(message, seq))
             if not event.wait(timeout_s):
@@ -331,7 +387,7 @@ class BoardLink(ReceivePath):
                 )
             return box[0]
         finally:
-            self._waiters.pop(key, None)
+            self.receiver.forget(key)
 
     # ------------------------------------------------------------------ internals
     def _next_seq(self) -> int:

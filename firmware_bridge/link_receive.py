@@ -1,25 +1,30 @@
-"""BoardLink's receiving half: frames in from the receiver thread (or the in-process core),
-telemetry timestamped, HELLOs checked, answers handed to the thread that asked, and the
-arming/clearing requests followed on the board's telemetry.
+"""The link's receiving half: what arrives from the board, and the thread that reads it.
 
-A mixin of BoardLink (firmware_bridge/link.py), which owns the state these methods read: the
-decoder, counters, locks, waiters and the arm/clear bookkeeping. It lives in its own file so each
-half of the link reads on one screen; it is not meant to be used alone.
+A `Receiver` is a part the BoardLink (firmware_bridge/link.py) creates and holds. It owns what
+only the receiving side touches: the frame decoder, the latest telemetry sample and its arrival
+times, the board's identity from its HELLO, the requests waiting for an answer, and the receiver
+thread with its reconnection. What the link must act on it reports through `LinkEvents`, the
+link's side of the contract: the port came back or was lost, telemetry arrived (the link follows
+its arm and clear requests on it), the board rebooted, or the board speaks another protocol.
+The receiver never writes commands and never touches the arm state: those are the link's.
 """
 
 from __future__ import annotations
 
-import contextlib
+import collections
+import threading
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import serial
 
 from firmware_bridge import messages as m
-from firmware_bridge.codec import encode_frame
+from firmware_bridge.codec import FrameDecoder, encode_frame
 from firmware_bridge.link_types import (
     BoardInfo,
     HandshakeTimeout,
+    LinkCounters,
     LinkError,
     PortUnavailable,
     ProtocolMismatch,
@@ -29,8 +34,81 @@ from firmware_bridge.link_types import (
 from firmware_bridge.timing import HELLO_RETRY_S, RECONNECT_RETRY_S
 
 
-class ReceivePath:
-    def _receive_loop(self) -> None:
+class LinkEvents(Protocol):
+    """What the receiver tells the link that holds it (each called from the receiver's thread,
+    or from whichever thread fed it bytes)."""
+
+    def port_back(self, ser: serial.Serial) -> None:
+        """The port reopened and the board said HELLO again: count it, write commands to it."""
+
+    def port_lost(self) -> None:
+        """The port errored (the cable is gone): stop writing, forget any arm request, count
+        it; the receiver reopens the port when it comes back."""
+
+    def telemetry_arrived(self, sample: TelemetrySample) -> None:
+        """A telemetry frame, timestamped on arrival."""
+
+    def board_rebooted(self, info: BoardInfo) -> None:
+        """A HELLO with a new boot id: the board restarted, disarmed."""
+
+    def board_mismatched(self, error: ProtocolMismatch) -> None:
+        """An unprompted HELLO in another protocol: the board was reflashed under us."""
+
+    def gave_up(self, error: LinkError) -> None:
+        """Reconnection found a board in another protocol: the receiver has stopped."""
+
+
+class Receiver:
+    """Decodes what the board sends, keeps the latest telemetry, answers waiting requests, and
+    (once started) reads the port on its own thread, reopening it when it goes away."""
+
+    def __init__(
+        self,
+        events: LinkEvents,
+        *,
+        port: str,
+        baud: int,
+        handshake_timeout_s: float,
+        clock: Callable[[], float],
+        counters: LinkCounters,
+        next_seq: Callable[[], int],
+    ) -> None:
+        self.events = events
+        self.port = port
+        self.baud = baud
+        self.handshake_timeout_s = handshake_timeout_s
+        self.clock = clock
+        self.counters = counters
+        self.next_seq = next_seq
+        self.board: BoardInfo | None = None
+        self.telemetry: TelemetrySample | None = None
+        self.telemetry_times: collections.deque[float] = collections.deque(maxlen=100)
+        self._decoder = FrameDecoder()
+        self._waiters: dict[tuple[int, int], tuple[threading.Event, list[Any]]] = {}
+        self._ser: serial.Serial | None = None
+        self._running = False
+        self._thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ the thread
+    def start(self, ser: serial.Serial) -> None:
+        """Read `ser` (already handshaken) on the receiver thread until `stop`."""
+        self._ser = ser
+        self._running = True
+        self._thread = threading.Thread(target=self._loop, name="link-rx", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._running = False
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+            self._thread = None
+        self._ser = None
+
+    @property
+    def running(self) -> bool:
+        return self._running
+
+    def _loop(self) -> None:
         while self._running:
             ser = self._ser
             if ser is None:
@@ -39,23 +117,11 @@ class ReceivePath:
             try:
                 data = ser.read(max(1, ser.in_waiting))
             except (serial.SerialException, OSError, TypeError):
-                self._drop_connection()
+                self._ser = None
+                self.events.port_lost()
                 continue
             if data:
-                self._dispatch_bytes(data)
-
-    def _drop_connection(self) -> None:
-        """The cable is gone: stop writing, forget any arm request, wait for it to return."""
-        self._connected.clear()
-        with self._state_lock:
-            self._want_arm = False
-            self._clear_pending = False
-        with self._write_lock:
-            if self._ser is not None:
-                with contextlib.suppress(serial.SerialException, OSError):
-                    self._ser.close()
-                self._ser = None
-        self.counters.disconnects += 1
+                self.feed(data)
 
     def _reconnect(self) -> None:
         time.sleep(RECONNECT_RETRY_S)
@@ -66,21 +132,20 @@ class ReceivePath:
         except PortUnavailable:
             return
         try:
-            self._handshake(ser)
+            self.handshake(ser)
         except ProtocolMismatch as exc:
             ser.close()
-            self.error = exc
+            self.events.gave_up(exc)
             self._running = False
             return
         except (LinkError, serial.SerialException, OSError):
             ser.close()
             return
-        with self._write_lock:
-            self._ser = ser
-        self.counters.reconnects += 1
-        self._connected.set()
+        self._ser = ser
+        self.events.port_back(ser)
 
-    def _handshake(self, ser: serial.Serial) -> None:
+    # ------------------------------------------------------------------ the handshake
+    def handshake(self, ser: serial.Serial) -> None:
         """Flush stale bytes, ask for HELLO until it comes, check the protocol and boot id."""
         ser.reset_input_buffer()
         self._decoder.discard_partial()
@@ -88,7 +153,7 @@ class ReceivePath:
         next_request = 0.0
         while self.clock() < deadline:
             if self.clock() >= next_request:
-                ser.write(b"\x00" + encode_frame(m.HelloRequest(), self._next_seq()))
+                ser.write(b"\x00" + encode_frame(m.HelloRequest(), self.next_seq()))
                 next_request = self.clock() + HELLO_RETRY_S
             data = ser.read(max(1, ser.in_waiting))
             for frame in self._decoder.feed(data):
@@ -118,17 +183,12 @@ class ReceivePath:
         previous, self.board = self.board, info
         if previous is not None and previous.boot_id != info.boot_id:
             self.counters.reboots_detected += 1
-            with self._state_lock:
-                self._want_arm = False
-            if self.on_reboot is not None:
-                self.on_reboot(info)
+            self.events.board_rebooted(info)
 
-    def receive(self, data: bytes) -> None:
+    # ------------------------------------------------------------------ what arrives
+    def feed(self, data: bytes) -> None:
         """Bytes from the board, from whichever transport carried them (the receiver thread's
         serial port, or the in-process core of firmware_bridge/direct.py)."""
-        self._dispatch_bytes(data)
-
-    def _dispatch_bytes(self, data: bytes) -> None:
         for frame in self._decoder.feed(data):
             self._dispatch_frame(frame)
         self.counters.bad_crc = self._decoder.bad_crc
@@ -141,17 +201,14 @@ class ReceivePath:
         message = frame.message
         if isinstance(message, m.Telemetry):
             sample = TelemetrySample(message, now)
-            self._telemetry = sample
-            self._telemetry_times.append(now)
-            self._watch_arming(message)
-            if self.on_telemetry is not None:
-                self.on_telemetry(sample)
+            self.telemetry = sample
+            self.telemetry_times.append(now)
+            self.events.telemetry_arrived(sample)
         elif isinstance(message, m.Hello):
             try:
                 self._accept_hello(message)  # unprompted: the board rebooted on its own
             except ProtocolMismatch as exc:
-                self.error = exc
-                self.estop()
+                self.events.board_mismatched(exc)
         elif isinstance(message, m.Pong):
             self._resolve((m.Pong.TYPE, message.nonce), message)
         elif isinstance(message, m.Config):
@@ -159,34 +216,42 @@ class ReceivePath:
         elif isinstance(message, m.ConfigAck):
             self._resolve((m.ConfigAck.TYPE, message.config_seq), message)
 
-    def _watch_arming(self, tel: m.Telemetry) -> None:
-        """Follow the board: a finished clear stops the CLEAR flag, and once the board has
-        left ARMED on its own, re-arming must be a new, explicit request."""
-        with self._state_lock:
-            left_latch = tel.state not in (m.State.ESTOP, m.State.FAILSAFE)
-            sent = self._clear_sent_seq
-            if (
-                self._clear_pending
-                and left_latch
-                and sent is not None
-                and _seq_reached(tel.last_seq, sent)
-            ):
-                self._clear_pending = False
-            sent = self._arm_sent_seq
-            if self._want_arm and sent is not None and _seq_reached(tel.last_seq, sent):
-                if not left_latch:
-                    self._want_arm = False
-                elif tel.state == m.State.DISARMED and tel.arm_refusal:
-                    self._want_arm = False  # refused: a new press must make a new edge
-                    self.last_arm_refusal = m.ArmRefusal(tel.arm_refusal)
+    def wait_until_still(self, still_s: float = 0.15, timeout_s: float = 5.0) -> None:
+        """Wait until the encoder has not moved for `still_s` (the board refuses to arm before).
+
+        The board checks 100 ms of stillness itself; waiting a little longer here means the
+        arm request that follows is not refused for a tick that was still in flight.
+        Stillness is measured between telemetry frames (their receive times), not on the host's
+        clock: on a busy machine no new frame may arrive for a while, and an old frame's ticks
+        are no evidence that the wheels stopped since.
+        """
+        deadline = self.clock() + timeout_s
+        last_ticks: int | None = None
+        since = 0.0
+        while self.clock() < deadline:
+            sample = self.telemetry
+            if sample is not None:
+                ticks = sample.telemetry.encoder_ticks
+                if ticks != last_ticks:
+                    last_ticks, since = ticks, sample.received_at
+                elif sample.received_at - since >= still_s:
+                    return
+            time.sleep(0.005)
+        raise LinkError(f"wheels still turning after {timeout_s:.1f} s (encoder keeps ticking)")
+
+    # ------------------------------------------------------------------ answers to requests
+    def expect(self, key: tuple[int, int]) -> tuple[threading.Event, list[Any]]:
+        """Register interest in the answer `key` (type, nonce or sequence) before asking: the
+        event is set and the answer put in the list when it arrives. `forget` it after."""
+        waiter: tuple[threading.Event, list[Any]] = (threading.Event(), [])
+        self._waiters[key] = waiter
+        return waiter
+
+    def forget(self, key: tuple[int, int]) -> None:
+        self._waiters.pop(key, None)
 
     def _resolve(self, key: tuple[int, int], message: Any) -> None:
         waiter = self._waiters.get(key)
         if waiter is not None:
             waiter[1].append(message)
             waiter[0].set()
-
-
-def _seq_reached(current: int, target: int) -> bool:
-    """True when u16 sequence `current` is at or past `target` (wrap-aware)."""
-    return ((current - target) & 0xFFFF) < 0x8000

@@ -89,3 +89,8 @@ def open_port(port: str, baud: int) -> serial.Serial:
                 f"serial port {port} is busy: another process has it open"
             ) from exc
         raise PortUnavailable(f"cannot open serial port {port}: {text}") from exc
+
+
+def _seq_reached(current: int, target: int) -> bool:
+    """True when u16 sequence `current` is at or past `target` (wrap-aware)."""
+    return ((current - target) & 0xFFFF) < 0x8000
