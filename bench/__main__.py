@@ -12,6 +12,9 @@ import json
 import sys
 from pathlib import Path
 
+if __package__ in (None, ""):  # run as a file, from any directory: the repository on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from bench.provenance import environment
 
 HERE = Path(__file__).parent
@@ -23,6 +26,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench")
     parser.add_argument("only", nargs="*", help=f"subset of {', '.join(names)}")
     args = parser.parse_args(argv)
+    unknown = [name for name in args.only if name not in names]
+    if unknown:
+        print(f"bench: error: no benchmark {unknown[0]!r} (one of: {', '.join(names)})",
+              file=sys.stderr)  # fmt: skip
+        return 2
     RESULTS.mkdir(exist_ok=True)
     for name in args.only or names:
         module = importlib.import_module(f"bench.{name}")

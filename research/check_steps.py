@@ -23,6 +23,7 @@ from carrt.errors import UserError
 from carrt.settings import apply_sets
 from research.dirl_steps import ROOT, every_noise_demonstrations
 from research.dirl_table import cell
+from research.paths import outs_at_root
 from research.study_config import StudyConfig, range_problems, usable_cores
 from research.study_steps import StudyStep, finished_steps, run_chains
 
@@ -115,7 +116,7 @@ def read_sets(argv: list[str] | None, cfg, module: str, doc: str, name: str):
             f"StudyConfig in research/study_config.py; {', '.join(CHECK_OWNS)} are the check's own"
         )
         studied = apply_sets(cfg.study, study, where, frozen=CHECK_OWNS)
-        return p, dataclasses.replace(cfg, study=studied)
+        return p, outs_at_root(dataclasses.replace(cfg, study=studied))
     except UserError as exc:
         p.error(str(exc))
 

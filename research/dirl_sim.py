@@ -56,8 +56,12 @@ import argparse
 import dataclasses
 import functools
 import json
+import sys
 import time
 from pathlib import Path
+
+if __package__ in (None, ""):  # run as a file, from any directory: the repository on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.provenance import environment, recorded
 from carrt.errors import UserError
@@ -84,6 +88,7 @@ from research.dirl_table import (
     plot,
     table,
 )
+from research.paths import outs_at_root
 from research.study_config import QUICK, StudyConfig, range_problems
 from research.study_steps import StudyStep, finished_steps, run_chains
 
@@ -220,7 +225,7 @@ def parse(argv: list[str] | None) -> StudyConfig:
         p.error(problem)
     if len(cfg.select_tracks) != 1 and len(cfg.select_tracks) < longest:
         p.error(f"select_tracks: {len(cfg.select_tracks)} entries for {longest} iterations")
-    return dataclasses.replace(cfg, report_only=a.report)
+    return outs_at_root(dataclasses.replace(cfg, report_only=a.report))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,8 +19,12 @@ import json
 import sys
 from pathlib import Path
 
+if __package__ in (None, ""):  # run as a file, from any directory: the repository on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from bench.provenance import environment
 from carrt.episodes.reader import list_episodes, read_episode
+from research.paths import at_root
 from training import demo_policy
 
 FRACTIONS = (0.25, 0.5)
@@ -51,13 +55,14 @@ def judge(model: Path, jobs: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m research.il_curve", description=__doc__)
-    p.add_argument("--work", default="demo-policy-work", help="training/demo_policy.py's --work")
+    p.add_argument("--work", default="demo-policy-work",
+                   help="training/demo_policy.py's --work (relative: the repo's)")  # fmt: skip
     p.add_argument("--steps", type=int, default=8000)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args(argv)
-    work, py = Path(a.work).resolve(), sys.executable
+    work, py = Path(at_root(a.work)).resolve(), sys.executable
     expert = work / "expert"
     rows = []
     for fraction in FRACTIONS:

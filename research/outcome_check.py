@@ -37,9 +37,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+
+if __package__ in (None, ""):  # run as a file, from any directory: the repository on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from research.check_steps import (
     imitation_flags,
@@ -68,7 +72,7 @@ ARMS = {"outcomes": "true", "uniform": "false"}  # arm → outcome_advantage
 class CheckConfig:
     """The study's settings (StudyConfig) plus the refinement arms'."""
 
-    out: str = "bench/results/outcome"
+    out: str = "research/runs/outcome"
     seeds: tuple[int, ...] = (0, 1, 2)
     outcome_steps: int = 500  # refinement steps of each arm
     outcome_lr: float = 3e-4  # the study's re-imitation learning rate

@@ -20,6 +20,9 @@ import statistics
 import sys
 from pathlib import Path
 
+if __package__ in (None, ""):  # run as a file, from any directory: the repository on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from carrt.errors import EXIT_USAGE, UserError
 from research.json_file import read_json
 

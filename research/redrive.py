@@ -1,6 +1,6 @@
 """Drive a finished study's policies again on other held-out placements: the same rows, new laps.
 
-    python -m research.redrive bench/results/dirl_s11/results.json --out bench/results/s11_wide
+    python -m research.redrive research/runs/dirl_s11/results.json --out research/runs/s11_wide
     python -m research.redrive RESULTS.json --out DIR --tracks 100-199 --seconds 30 --models IL,...
 
 Why: a study's table is only as sure as its placements are many. Per-placement completion
@@ -24,6 +24,9 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+if __package__ in (None, ""):  # run as a file, from any directory: the repository on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.provenance import environment
 from carrt.arg_types import parse_int_list

@@ -1,7 +1,7 @@
 """The loop closed: each refined policy drives, its crashes teach the next world model, and it is
 refined again — against imitation at equal recorded frames.
 
-    python -m research.refine_loop --set out=bench/results/il_refined --set seeds=5,6,7
+    python -m research.refine_loop --set out=research/runs/il_refined --set seeds=5,6,7
 
 Why: refinement in a world model never beat the policy it started from (README parts 2, 6,
 7 and 11). Every world model measured so far learnt the drives of *another* policy than the one
@@ -41,10 +41,14 @@ and the next two did not repair it (−0.71). -unc level in both. At σ 1.0 (τ 
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+
+if __package__ in (None, ""):  # run as a file, from any directory: the repository on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from research.check_steps import (
     imitation_flags,
@@ -75,7 +79,7 @@ FORMS = {"safeguards": [], "paper": PAPER_FORM, "paper-corrected": PAPER_CORRECT
 class LoopConfig:
     """The loop's settings; everything else is the study's (StudyConfig)."""
 
-    out: str = "bench/results/outcome"  # a take-over check's OUT: its demonstrations and IL reused
+    out: str = "research/runs/outcome"  # a take-over check's OUT: its demonstrations and IL reused
     seeds: tuple[int, ...] = (0, 1, 2)
     loops: int = 3  # refinements, each after the policy before it drove
     demo_noise: tuple[float, ...] = (0.0,)  # σ of the demonstrations

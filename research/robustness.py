@@ -1,8 +1,8 @@
 """The paper's robustness claim, judged from two results files: does DIRL lose less than IL when
 the demonstrations are noisy?
 
-    python -m research.robustness --clean docs/takeover_5seeds_rerun.json \
-        --noisy bench/results/tau05/results-takeovers.json --json docs/robustness_tau05.json
+    python -m research.robustness --clean research/results/takeover_5seeds_rerun.json.gz \
+        --noisy research/results/takeover_tau05_sigma1_5seeds.json.gz
 
 Why a separate step: the claim compares each method with itself across demonstration noise
 (IL at σ 0 against IL at σ 1.0, DIRL at σ 0 against DIRL at σ 1.0), and the σ 0 and σ > 0 chains
@@ -20,6 +20,9 @@ import argparse
 import json
 import sys
 from pathlib import Path
+
+if __package__ in (None, ""):  # run as a file, from any directory: the repository on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.provenance import environment
 from carrt.arg_types import finite_positive

@@ -24,7 +24,7 @@ class StudyConfig:
     runs of 2026-11-25 (docs/dirl_study.md: "Search from iteration 2" and the noisy demonstrations
     after it); each table there gives the `--set`s it was run with."""
 
-    out: str = "bench/results/dirl_sim"
+    out: str = "research/runs/dirl_sim"
     profile: str = "cpu"  # model sizes (training/profiles.py)
     seeds: tuple[int, ...] = (0, 1, 2)  # training seeds: model init, batch order, DIRL drives
     robustness_seeds: tuple[int, ...] = (0, 1, 2)  # seeds of the σ > 0 chains
@@ -152,7 +152,7 @@ class StudyConfig:
 
 
 QUICK = dict(
-    out="bench/results/dirl_sim_quick", profile="tiny", seeds=(0,), robustness_seeds=(0,),
+    out="research/runs/dirl_sim_quick", profile="tiny", seeds=(0,), robustness_seeds=(0,),
     train_tracks="1000", extra_tracks="1001-1002", eval_tracks="100", counterfactual_tracks="200",
     counterfactual_starts=2, expert_episodes=2, demo_noise=(0.0, 0.5), iterations=2,
     drive_seconds=5.0, imitation_steps=30, world_model_steps=30, world_model_steps_next=10,

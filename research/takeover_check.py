@@ -60,9 +60,13 @@ research/takeover_refine.py's.
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
 from collections import Counter
 from pathlib import Path
+
+if __package__ in (None, ""):  # run as a file, from any directory: the repository on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from research.check_steps import (
     imitation_flags,

@@ -13,7 +13,7 @@ from research.study_config import StudyConfig
 class TakeoverConfig:
     """The rounds' settings; everything else is the study's (StudyConfig)."""
 
-    out: str = "bench/results/outcome"  # the outcome check's: its demonstrations and IL reused
+    out: str = "research/runs/outcome"  # the outcome check's: its demonstrations and IL reused
     seeds: tuple[int, ...] = (0, 1, 2)
     # 0 (with refine): no take-overs; IL refined in a world model of its own demonstrations,
     # on the same frames ("IL+refined" ± unc against IL: the DIRL iteration at equal data);

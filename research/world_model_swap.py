@@ -1,8 +1,8 @@
 """Which half made refinement work: the policy it started from, or the world model it ran in?
 
-    python -m research.world_model_swap --set out=bench/results/swap-s05-in-s1 \
-        --set policy_out=bench/results/tau05 --set policy_noise=0.5 --set policy_rounds=2 \
-        --set world_out=bench/results/tau05 --set world_noise=1 --set world_rounds=2
+    python -m research.world_model_swap --set out=research/runs/swap-s05-in-s1 \
+        --set policy_out=research/runs/tau05 --set policy_noise=0.5 --set policy_rounds=2 \
+        --set world_out=research/runs/tau05 --set world_noise=1 --set world_rounds=2
 
 Why: with the lasting-error person (τ 0.5 s) refinement beat the round it started from at
 σ 0.5 on five seeds (+0.038 ± 0.009 completion) and did not at σ 0 or σ 1.0 (docs/dirl_study.md,
@@ -43,6 +43,9 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
+if __package__ in (None, ""):  # run as a file, from any directory: the repository on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from bench.provenance import environment
 from research.check_steps import read_sets, report, study_for, suffix
 from research.dirl_steps import ROOT, evaluate
@@ -55,11 +58,11 @@ from research.takeover_refine import collision_labels, refine_cmd, world_model_c
 class SwapConfig:
     """Whose policy is refined in whose world model; the study's settings as the checks ran."""
 
-    out: str = "bench/results/swap"
-    policy_out: str = "bench/results/tau05"  # the take-over check whose last round is refined
+    out: str = "research/runs/swap"
+    policy_out: str = "research/runs/tau05"  # the take-over check whose last round is refined
     policy_noise: float = 0.5
     policy_rounds: int = 2
-    world_out: str = "bench/results/tau05"  # the take-over check whose world model it runs in
+    world_out: str = "research/runs/tau05"  # the take-over check whose world model it runs in
     world_noise: float = 1.0
     world_rounds: int = 2
     # as the take-over check labelled its world models' and refinements' frames
