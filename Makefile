@@ -70,10 +70,11 @@ bench: $(STAMP)
 
 # The paper's simulation study, IL against DIRL iterations, -unc and IL at each iteration's
 # frames, refinement chosen by driving, σ 0, 0.5 and 1.0, 3 seeds each: the settings of the
-# runs of 2026-11-25 in docs/dirl_study.md (about 9 hours of them on 2 cores; results in
-# bench/results/dirl_sim/, resumable). `$(PY) -m bench.dirl_sim --quick` runs every step in minutes.
+# runs of 2026-11-25 in research/LOG.md (about 9 hours of them on 2 cores; results in
+# research/runs/dirl_sim/, resumable). `$(PY) -m research.dirl_sim --quick` runs every step in
+# minutes. The study's claims and their commands: research/README.md.
 study: $(STAMP)
-	$(PY) -m bench.dirl_sim
+	$(PY) -m research.dirl_sim
 
 # Make carrt/assets/demo_policy.onnx again (same recipe, not the same bytes since the simulator
 # changed after 2026-11-22), the policy `make demo` drives with (demonstrations,
@@ -85,7 +86,7 @@ demo-policy: $(STAMP) core
 # Driving against training data: imitation on 1/4, 1/2 and all of demo-policy's demonstrations,
 # and the take-over iteration, judged on the held-out placements (after make demo-policy).
 il-curve: $(STAMP) core
-	$(PY) -m bench.il_curve --work demo-policy-work
+	$(PY) -m research.il_curve --work demo-policy-work
 
 lint: $(STAMP)
 	$(PY) -m ruff check --fix .
