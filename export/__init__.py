@@ -1,8 +1,9 @@
 """Policy → one self-contained ONNX file the car can trust (DESIGN §9).
 
-`export_policy` (used by training/iterate.py) and `carrt-export` (by hand) do the same
-thing: trace, attach carrt's metadata, check parity with PyTorch on recorded frames, validate
-with carrt's own loader, and only then rename the file into place.
+`export_policy` and `carrt-export` (by hand, and as a process at the end of every carrt-train
+run: training/ never imports export/) do the same thing: trace, attach carrt's metadata, check
+parity with PyTorch on recorded frames, validate with carrt's own loader, and only then rename
+the file into place.
 """
 
 from carrt.deps import exit_unless_installed

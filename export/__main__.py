@@ -56,6 +56,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="int8/fp16: largest single |mu - mu_fp32| (default: %(default)s)",
     )  # fmt: skip
     parser.add_argument("--json", action="store_true", help="print the report as JSON")
+    parser.add_argument(
+        "--json-out", metavar="PATH",
+        help="also write the report as JSON to PATH (carrt-train's report reads it)",
+    )  # fmt: skip
     return parser
 
 
@@ -79,6 +83,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     print(json.dumps(report.as_dict(), indent=2) if args.json else "\n".join(report.render()))
+    if args.json_out:
+        from pathlib import Path
+
+        Path(args.json_out).write_text(json.dumps(report.as_dict(), indent=2, default=str) + "\n")
     refused = [v for v in report.variants.values() if not (v.written or v.skipped)]
     return EXIT_REFUSED if refused else 0
 

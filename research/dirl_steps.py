@@ -26,7 +26,7 @@ def py(*args: str) -> list[str]:
 
 def iterate_cmd(cfg: StudyConfig, episodes: list[Path], out: Path, *extra: str) -> list[str]:
     sets = [arg for item in cfg.iterate_overrides() for arg in ("--set", item)]
-    return py(str(ROOT / "training" / "iterate.py"), "--episodes", *map(str, episodes),
+    return py(str(ROOT / "research/variants/train.py"), "--episodes", *map(str, episodes),
               "--out", str(out), "--profile", cfg.profile, *sets, *extra)  # fmt: skip
 
 
@@ -195,7 +195,8 @@ def select(cfg: StudyConfig, step: StudyStep, name: str, k: int, run: Path, star
     earlier = sorted(run.parent.glob("*/selected/selection.json"))
     tracks = cfg.select_tracks[min(k, len(cfg.select_tracks)) - 1]
     incumbent = ["--incumbent", "imitated"] if imitated else []
-    step(f"select-{name}", py("-m", "training.select_by_driving", "--out", str(chosen),
+    select = str(ROOT / "research/variants/select_by_driving.py")
+    step(f"select-{name}", py(select, "--out", str(chosen),
          "--candidates", f"start={start / 'policy.pt'}",
          *([f"imitated={imitated}"] if imitated else []), *map(str, candidates),
          *incumbent, "--margin-z", str(cfg.select_margin_z),

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from research.dirl_steps import py
+from research.dirl_steps import ROOT, py
 from research.dirl_table import cell
 from research.study_steps import StudyStep
 
@@ -42,7 +42,8 @@ def member_runs(step: StudyStep, tag: str, world: Path, seed: int, count: int,
 def drift(step: StudyStep, tag: str, run: Path, start: Path, members: list[Path]) -> None:
     """carrt-refine-drift of the refined `run` against `start` (the run refinement started
     from: its policy, and its counterfactual set's frames) into RUN/drift.json."""
-    argv = py("-m", "training.refine_drift", "--run", str(run), "--start", str(start),
+    argv = py(str(ROOT / "research/variants/refine_drift.py"), "--run", str(run),
+              "--start", str(start),
               "--json", str(run / "drift.json"))  # fmt: skip
     if members:
         argv += ["--members", *map(str, members)]

@@ -11,7 +11,8 @@ obstacle a little differently, and a lap is won or lost. Selection by driving as
 to beat its incumbent by two standard errors; whether a refined candidate that does so was
 improved, or only moved, is judged against these: policies moved exactly as far with no
 world model behind the direction. Drive them beside the real candidates with
-`python -m training.select_by_driving --candidates imitated=START NULL/null*.pt REFINED/refine*.pt`.
+`python -m research.variants.select_by_driving --candidates imitated=START NULL/null*.pt
+REFINED/refine*.pt`.
 
 Each null candidate adds to every parameter tensor (buffers excluded: BatchNorm statistics,
 the normalisation) Gaussian noise in proportion to that tensor's RMS, scaled by bisection until

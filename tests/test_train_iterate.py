@@ -13,7 +13,6 @@ import os
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -21,7 +20,6 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from training import checkpoint as ck  # noqa: E402
-from training import refine_drift as rd  # noqa: E402
 from training.data import load_episodes  # noqa: E402
 from training.iterate import main  # noqa: E402
 
@@ -122,30 +120,6 @@ def test_next_iteration_starts_from_the_previous_one(iteration1, sim_episodes, t
     wm = ck.load_checkpoint(out / "checkpoints" / "world_model.pt")
     assert [h["step"] for h in wm["history"]] == [1, 2]
     assert "iteration 2" in (out / "report.md").read_text()
-
-
-def test_the_report_says_where_refinement_moved_the_plan(iteration1, sim_episodes, tmp_path):
-    """From the world-model stage's policy in iteration 1, from --init's policy in a run that
-    only refines; a run that refines nothing has no such section."""
-    _, first = iteration1
-    record = json.loads((first / "metrics.json").read_text())["refine_drift"]
-    assert record["frames"] > 0 and record["members"] == 1
-    before = ck.load_policy(first / "checkpoints" / "world_model.pt")[0]
-    after = ck.load_policy(first / "policy.pt")[0]
-    moved_weights = after.state_dict()
-    changed = any(not torch.equal(v, moved_weights[k]) for k, v in before.state_dict().items())
-    assert changed == (record["moved"]["steering_abs"] + record["moved"]["throttle_abs"] > 0)
-    assert "## Where refinement moved the plan" in (first / "report.md").read_text()
-    for refine, has in ((2, True), (0, False)):
-        out = tmp_path / f"refine{refine}"
-        argv = ["--episodes", str(sim_episodes), "--out", str(out), "--init", str(first)]
-        assert main([*argv, *QUICK, *steps(0, 0, refine)]) == 0
-        record = json.loads((out / "metrics.json").read_text())["refine_drift"]
-        assert (record is not None) == has
-        if has:  # no earlier stage in this run: the start is --init's policy
-            start = rd.policy_before_refinement(SimpleNamespace(init=str(first)), out)
-            init = ck.load_checkpoint(first / "policy.pt")["policy"]
-            assert all(torch.equal(v, init[k]) for k, v in start.state_dict().items())
 
 
 def test_a_fresh_world_model_starts_from_its_own_initialisation_not_inits(

@@ -1,9 +1,9 @@
 """Every number of a training iteration, in one documented dataclass, and how `--set` changes it.
 
-The stages (imitation, world model, refinement), iterate.py, the benchmarks and the study all
-read this one config, and none of them imports it back from iterate.py, so the stages stand
-alone. A profile name picks model sizes (training/profiles.py) and a preset of steps and batch
-sizes (PRESETS); `--set field=value` overrides any field.
+The stages (imitation, world model, refinement), iterate.py and iteration.py, the benchmarks
+and the study all read this one config, and none of them imports it back from a command, so
+the stages stand alone. A profile name picks model sizes (training/profiles.py) and a preset
+of steps and batch sizes (PRESETS); `--set field=value` overrides any field.
 """
 
 from __future__ import annotations
@@ -21,16 +21,17 @@ class UsageError(UserError):
 
 @dataclass
 class IterateConfig:
-    """Everything one iteration does. Defaults are the paper's numbers where it gives them."""
+    """Everything one iteration does. Defaults are the paper's numbers where it gives them
+    (DESIGN §2; "our choice" where it gives none). carrt's safeguards are one group below:
+    all of them off is the paper's pure form. Research variants (research/variants/) are the
+    last group; carrt-train refuses them. What was measured behind a default: research/LOG.md.
+    """
 
     # -- data and run
     episodes: tuple[str, ...] = ()  # episode directories, or directories of them
-    # episodes the world model learns INSTEAD of `episodes` (carrt-train --world-episodes);
-    # imitation and refinement still read `episodes`. Empty: the world model learns `episodes`
-    # (the paper's). Why: a world model of a careful driver's frames learns to ignore the
-    # steering (the image already says where it goes); one of a sloppier person's drives, whose
-    # errors last and end in crashes, sees what steering off the line does, and refinement in
-    # it took collisions away on validation and on fresh seeds (docs/dirl_study.md, 2026-11-27)
+    # episodes the world model learns INSTEAD of `episodes` (--world-episodes), e.g. a sloppier
+    # person's drives, whose errors show what steering off the line does; imitation and
+    # refinement still read `episodes`. Empty: the world model learns `episodes` (the paper's)
     world_episodes: tuple[str, ...] = ()
     out: str = ""  # run directory: checkpoints, policy.pt, policy.onnx, report.md, figures
     init: str | None = None  # previous iteration's run directory (None: iteration 1)
@@ -54,8 +55,8 @@ class IterateConfig:
     mirror_imitation: bool = False  # mirror half of each batch, steering negated (augment.py)
     # A later iteration (--init) learns by imitation again before the world model: from the
     # previous policy, imitation_steps on every labelled frame given, the demonstrations and the
-    # person's take-overs in the new drives (states the policy itself reached, DAgger-style).
-    # False: the paper's Algorithm 1, imitation once.
+    # person's take-overs in the new drives (states the policy itself reached, DAgger-style;
+    # the loop's --takeovers sets it). False: the paper's Algorithm 1, imitation once.
     reimitate: bool = False
     # -- stage 2: world model (evidential image/speed regression + collision classification)
     world_model_steps: int = 30000  # optimizer steps (our choice)
@@ -65,24 +66,18 @@ class IterateConfig:
     w_speed: float = 1.0  # weight of L_speed in L_w
     w_collision: float = 1.0  # weight of L_collision in L_w
     collision_weight: float = 0.0  # weight of the collision class; 0 = n_safe/n_collision
-    # True: the 0.5 s before a person's take-over (override edge) is labelled a collision for the
-    # world model too, as the paper counts its e-stops (drives where the person takes over in
-    # time hold the policy's near-crashes only as take-overs). Off by default, measured: on the
-    # counterfactual check (docs/dirl_study.md, "Refinement on top of the take-over rounds")
-    # the same world model ranked action sequences backwards with it (ρ −0.27, −0.24, +0.01,
-    # a lifted throttle imagined safest from 73-90 % of the starts) and forwards without it;
-    # the take-over labels teach "fast = collision" because the expert brakes after each
+    # True: the 0.5 s before a person's take-over is labelled a collision for the world model
+    # too, as the paper counts its e-stops. Off: a take-over is followed by the person's own
+    # braking, and those labels can teach "fast = collision" rather than what caused it
     takeovers_as_collisions: bool = False
     # with --init: the world model starts from its own (seeded) initialisation instead of the
-    # previous run's, the policy still from --init: a member of an ensemble of world models on
-    # the same frames, trained apart (carrt-refine-drift --members asks whether their spread
-    # grows where refinement moved the plan; members that continue one run would agree)
+    # previous run's (the policy still from --init): a member of an ensemble trained apart
     world_model_fresh: bool = False
     evidential_lambda: float = 0.01  # λ of the evidential regulariser |y−γ|(2ν+α)
     # mirror half of each batch left↔right, steering negated (training/augment.mirror_batch):
     # steering tied to the place on a one-way track cannot stand in for what the image shows
     mirror_world_model: bool = False
-    # -- stage 3: refinement in imagination
+    # -- stage 3: refinement in imagination (the paper's objective; training/refine.py)
     refine_steps: int = 5000  # optimizer steps (our choice)
     refine_batch_size: int = 36  # global batch of start frames (paper: 36)
     refine_lr: float = 1e-5  # Adam (paper: 1e-5)
@@ -91,61 +86,30 @@ class IterateConfig:
     refine_w_uncertainty: float = 1.0  # cost of u_i + u_s + u_c, per step
     uncertainty_clip: float = 10.0  # each u is clipped here in the refinement loss
     no_uncertainty: bool = False  # the paper's "-unc" ablation: w_unc = 0
-    # safeguard: p̂(collision) in the objective with the collision class weight of the world
-    # model's training divided back out of its odds (WorldModel.imagine): class-weighted, p̂
-    # averages ~0.4 per step against ~0.04 true; measured on the counterfactual check
-    # (2026-11-24, 3 seeds): rank correlation 0.28/0.54/0.63 for iterations 1-3 against
-    # 0.31/0.35/0.30 uncorrected; False: the paper's form
+    # every N refinement steps the policy is also kept as a candidate (OUT/candidates/
+    # refine<step>.pt), so how far to refine can be chosen by driving; 0: the final policy only
+    refine_candidates_every: int = 0
+    # -- carrt's safeguards on refinement (training/refine.py says why each). All off is the
+    # paper's pure form: collision_prior_correction=false refine_w_anchor=0
+    # refine_w_imitation=0 refine_center_gradient=false (refine_steering stays true).
+    # p̂(collision) with the world model's collision class weight divided back out of its odds
     collision_prior_correction: bool = True
-    # safeguard: Σ|μ−μ_start|² per start; 10 chosen by driving on validation placements
-    # (docs/dirl_anchor_validation.json: without it refinement took completion 0.84 → 0.18);
-    # 0: the paper's form
-    refine_w_anchor: float = 10.0
-    # safeguard: weight of imitation's L1 on demonstration frames during refinement (refine.py);
-    # 50 measured on validation placements 200-219 (seed 0, iteration 1 → 2: completion 0.49
-    # without it, 0.60 at 10, 0.68 at 50, from 0.73) and what every study, check and the demo
-    # policy's refinement ran with (bench/study_config.py); 0: off (the paper's form)
-    refine_w_imitation: float = 50.0
-    # safeguard: the world model's gradient on the actions less its mean over the batch of
-    # start frames (refine.py), so refinement changes what the policy does in one situation
-    # against another and cannot shift every plan alike; measured on validation placements
-    # 200-219 (2026-11-24): uncentred, iteration 2's collision term moved every plan's steering
-    # by -0.02 to -0.04 and completion fell 0.80/0.81/0.76 -> 0.61/0.44/0.62 in 100 steps;
-    # False: the paper's form
+    refine_w_anchor: float = 10.0  # weight of Σ|μ−μ_start|²: the plan stays near its start
+    refine_w_imitation: float = 50.0  # weight of imitation's L1 on demonstrations, each step
+    # the world model's gradient on the actions less its mean over the batch of start frames
     refine_center_gradient: bool = True
-    # safeguard: False keeps the world model's gradient off the steering channel, so refinement
-    # moves only the throttle through it (steering is then held by the anchor and imitation
-    # terms). Why: on the counterfactual check the gradient's sign at the plan agreed with the
-    # truth for throttle 0.67/0.57/0.60 (s11 iteration 1, seeds 0-2) and for steering
-    # 0.50/0.42/0.38, and full throttle was the truly best alternative at ~80 % of starts.
-    # Measured by driving (docs/dirl_study.md, "null candidates", 3 seeds): no better than
-    # random moves of its size, so the safeguard stays off by default (True, the paper's form)
-    refine_steering: bool = True
-    # safeguard: refinement by search instead of the gradient (training/refine_search.py):
-    # from each start the world model imagines the plan and fixed alternatives (steering ±0.3 /
-    # ±0.6, lift, brake, full throttle) and μ is pulled by L1 toward the best where it beats the
-    # plan by more than refine_search_margin (objective units); why: the gradient at the plan
-    # had the true sign 0.47-0.63 of the time on the counterfactual check, the ordering of
-    # whole alternatives 0.86-0.93 for most; False: the paper's gradient
+    refine_steering: bool = True  # False: the world model's gradient moves the throttle only
+    # -- research variants (research/variants/, run by research/variants/train.py; carrt-train
+    # refuses them): refinement by search among fixed alternatives (refine_search.py)
     refine_search: bool = False
-    refine_search_margin: float = 0.0
+    refine_search_margin: float = 0.0  # how much better an alternative must be (objective units)
     refine_w_search: float = 50.0  # weight of the L1 toward the chosen alternative
-    # refinement from the drives' real outcomes instead of imagination (training/
-    # refine_outcomes.py): the policy imitates its own executed actions in the AUTO steps of
-    # the drives, weighted exp(A/(τ·std A)) by the advantage of the recorded return (the
-    # objective above with recorded speeds and collisions, take-overs counted as collisions)
-    # over a ridge baseline on the policy's features; the world model is not used. Why: the
-    # world models' judgement of small changes to a plan drove no better than random moves
-    # (docs/dirl_study.md, "null candidates"). False: the paper's refinement in imagination.
+    # refinement from the drives' recorded outcomes instead of imagination (refine_outcomes.py)
     refine_outcomes: bool = False
     outcome_advantage: bool = True  # False: every window weighs 1 (the control: no outcome)
     outcome_temperature: float = 1.0  # τ, in standard deviations of the advantage
     outcome_weight_max: float = 20.0  # cap on a window's weight
-    # every N refinement steps the policy is also kept as a candidate (OUT/candidates/
-    # refine<step>.pt) so that how far to refine can be chosen by driving
-    # (training/select_by_driving.py); 0: only the final policy
-    refine_candidates_every: int = 0
-    # -- the world model's counterfactual check (simulator only: training/counterfactual.py)
+    # the world model's counterfactual check in the report (simulator only: counterfactual.py)
     counterfactual_starts: int = 0  # start states per placement; 0: off (a real car's data)
     counterfactual_layout: str = "hard"  # simulator layout of the held-out placements
     counterfactual_tracks: str = "200-204"  # held-out placements (never 100-199, the test sets)
@@ -156,7 +120,7 @@ class IterateConfig:
     eval_every: int = 0  # steps between held-out losses during training (0: off)
     eval_windows: int = 2048  # held-out windows used by the final metrics
     stop_after: int = 0  # stop after this many steps in this invocation (0: never); resumable
-    export: bool = True  # write policy.onnx through export.export_policy
+    export: bool = True  # write policy.onnx (carrt-export, run as a process after training)
     figures: bool = True  # write figures/*.png
     progress: bool = True  # tqdm bars on rank 0
 
@@ -205,8 +169,7 @@ PRESETS: dict[str, dict] = {
     "cpu": dict(imitation_steps=2000, world_model_steps=3000, refine_steps=500,
                 imitation_batch_size=64, world_model_batch_size=32, refine_batch_size=16,
                 log_every=10, ckpt_every=250, eval_every=500, augment=True,
-                # measured on the counterfactual check (issue 14): at 1.0 the per-pixel NLL's
-                # gradients drown the collision term and the head never learns what steering does
+                # at 1.0 the per-pixel NLL's gradients drown the small model's collision term
                 w_image=0.1),
     "paper": dict(eval_every=1000, augment=True),
 }  # fmt: skip

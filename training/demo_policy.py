@@ -58,9 +58,8 @@ TAKEOVER_TRACKS = ("1000-1099", "1100-1219")  # round 1, round 2
 LAYOUTS = "mixed,hard"
 EVAL_TRACKS = "100-104"
 SLOPPY_TRACKS = "1000-1039"  # the sloppier person's demonstrations (world model only)
-# off: measured 2026-11-27 (docs/demo_policy_sloppy_world.json), on validation placements
-# 200-259 the refined network drove level with the one it started from (Δ collisions / min
-# −0.04 ± 0.08, Δ completion −0.001 ± 0.014) and no better than the shipped file
+# off: on validation placements the refined network drove level with the one it started from
+# (what was measured: research/LOG.md)
 SLOPPY_WORLD = False
 THROTTLE_CEILING = 0.9  # chosen on validation placements 200-219 (docs/demo_policy_validation.json)
 

@@ -1,24 +1,34 @@
-"""One DIRL iteration, top to bottom: data → imitation → world model → refinement → export → report.
+"""The paper's Algorithm 1 end to end: imitate once, then N times world model → refine → drive.
 
-    carrt-train --episodes episodes/ --out runs/iter1 --profile cpu
-    carrt-train --episodes episodes/ --out runs/iter2 --init runs/iter1
-    carrt-train --episodes episodes/ --world-episodes sloppy/ --out runs/r --init runs/iter1
-    torchrun --nproc_per_node 2 training/iterate.py …          # DistributedDataParallel
+    carrt-train --episodes demos/ --out runs/loop --iterations 3 --drive sim   # all in the sim
+    carrt-train --episodes demos/ --out runs/loop --iterations 3               # with a real car
+    carrt-train --episodes demos/ --out runs/iter1                             # one iteration
 
-Iteration 1 (no --init) learns the policy by imitation, then the world model, then refines the
-policy in the world model's imagination. A later iteration (--init runs/iterN-1) starts from the
-previous policy and world model, trains the world model on ALL the episodes given (old + new)
-and refines again; imitation does not run again (the paper's algorithm, DESIGN §2) unless
-`reimitate` is set: then the previous policy first learns by imitation on every labelled frame,
-the person's take-overs in the new episodes included. With --world-episodes the world model
-learns those episodes instead (imitation and refinement still read --episodes).
+DIRL (Cai et al. 2021, Algorithm 1; DESIGN §2), as this file runs it:
 
-Every number lives in IterateConfig (training/config.py); a profile name picks model sizes and
-a preset of steps and batch sizes (PRESETS), and `--set field=value` overrides any field.
-Checkpoints land in OUT/checkpoints every ckpt_every steps; Ctrl-C or SIGTERM finishes the step
-in flight and checkpoints it (a second Ctrl-C stops at once), and running the same command again
-resumes exactly where the run stopped. Only rank 0 writes files. Exit status: 0 done (or stopped by
-stop_after), 1 diverged or export refused, 2 bad input, 130 interrupted.
+    OUT/iter_0   imitation on the demonstrations (--episodes): the policy π₀
+    for k = 1..N:
+        OUT/iter_k          the world model learns ALL the data so far (continuing iter_{k-1}'s),
+                            then π_{k-1} is refined in its imagination: π_k, exported to
+                            OUT/iter_k/policy.onnx
+        OUT/iter_k/drives   π_k drives and records (a collision ends an episode); these episodes
+                            join the data of iteration k+1
+
+`--drive sim`: the simulator drives each policy on --drive-tracks placements, in worker
+processes of carrt's own recording command (training/sim_data.py: the drives never run in this
+process, which holds torch). `--drive car` (the default): the script stops after exporting π_k
+and prints the commands to drive and record it on the car; run the same command again once the
+drives are in OUT/iter_k/drives and it goes on. Every step is resumable: a finished one is
+skipped, a stopped training resumes from its checkpoint.
+
+`--takeovers`: the take-over rounds of the paper's data loop. While π_k drives, the person (in
+the simulator, the scripted expert) takes over before a crash; their commands label the states
+the policy itself reached, and iteration k+1 learns them by imitation again (`reimitate`)
+before its world model.
+
+Without --iterations this is one iteration exactly as before (training/iteration.py): the flags
+below the loop's, IterateConfig's numbers (training/config.py) and `--set` mean the same in both.
+Exports run as a `python -m export` process (training/ never imports export/).
 """
 
 from __future__ import annotations
@@ -26,307 +36,152 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-if __package__ in (None, ""):  # run as `carrt-train`: make `training` importable
+if __package__ in (None, ""):  # run as a script (demo_policy, torchrun): make `training` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import torch
-
+from carrt.episodes.reader import list_episodes
 from carrt.errors import UserError
-from training import checkpoint as ck
-from training.config import PRESETS, IterateConfig, UsageError, apply_set
-from training.data import Normalisation, compute_normalisation, data_digest
-from training.profiles import PROFILES
-from training.stage_data import StageData, read_episodes, read_world_episodes
-from training.trainer import (
-    Budget,
-    Dist,
-    Interrupted,
-    RunContext,
-    StopRequested,
-    init_distributed,
-    shutdown_distributed,
-)
+from training.config import IterateConfig, UsageError
+from training.iteration import _Parser, add_iteration_args, config_from, guarded
+
+DRIVE_SEED_STRIDE = 100_000  # iteration k's drives: simulator seeds placement + stride·k
+DONE = ".done"  # a finished step's marker, in its folder
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # one line, exit 2 — not argparse's usage block
-        raise UsageError(message)
-
-
-def parse_args(argv: list[str] | None = None) -> IterateConfig:
+def parse(argv: list[str] | None) -> tuple[argparse.Namespace, IterateConfig]:
     p = _Parser(prog="carrt-train", description=__doc__.split("\n")[0])
-    p.add_argument("--episodes", nargs="+", required=True, metavar="DIR")
-    p.add_argument(
-        "--world-episodes", nargs="+", default=[], metavar="DIR",
-        help="episodes the world model learns instead of --episodes (e.g. a sloppier drive)",
-    )  # fmt: skip
-    p.add_argument("--out", required=True, metavar="DIR")
-    p.add_argument("--init", metavar="DIR", help="previous iteration's run directory")
-    p.add_argument("--profile", help=f"{' | '.join(PROFILES)} (default: --init's, else cpu)")
-    p.add_argument("--steps", type=int, help="optimizer steps of every stage")
-    p.add_argument("--no-uncertainty", action="store_true", help="w_unc = 0 (the -unc ablation)")
-    p.add_argument("--seed", type=int)
-    p.add_argument("--device", help="auto | cpu | cuda | cuda:N")
-    p.add_argument(
-        "--set", action="append", default=[], metavar="FIELD=VALUE",
-        help="any IterateConfig field (training/config.py), e.g. refine_lr=1e-5; repeatable",
-    )  # fmt: skip
+    add_iteration_args(p)
+    loop = p.add_argument_group("the loop (Algorithm 1; without --iterations: one iteration)")
+    loop.add_argument("--iterations", type=int, metavar="N", help="world model → refine → drive")
+    loop.add_argument("--drive", choices=("car", "sim"), default="car", help="who drives π_k")
+    loop.add_argument("--takeovers", action="store_true", help="take-over rounds (see above)")
+    loop.add_argument("--drive-tracks", default="1000-1009", help="sim placements (1000-1009)")
+    loop.add_argument("--drive-layouts", default="hard", help="sim layouts, taken in turn")
+    loop.add_argument("--drive-seconds", type=float, default=60.0, help="sim s per placement")
+    loop.add_argument("--jobs", type=int, default=2, help="sim drives at once (default: 2)")
     a = p.parse_args(argv)
-    profile = a.profile or (_init_profile(a.init) if a.init else "cpu")
-    if profile not in PROFILES:
-        raise UsageError(f"unknown profile {profile!r}; choose one of {', '.join(PROFILES)}")
-    cfg = IterateConfig(
-        episodes=tuple(a.episodes), world_episodes=tuple(a.world_episodes), out=a.out,
-        init=a.init, profile=profile,
-    )  # fmt: skip
-    cfg = dataclasses.replace(cfg, **PRESETS.get(profile, {}))
-    if a.steps is not None:
-        cfg = dataclasses.replace(
-            cfg, imitation_steps=a.steps, world_model_steps=a.steps, refine_steps=a.steps
-        )
-    for name in ("seed", "device"):
-        if getattr(a, name) is not None:
-            cfg = dataclasses.replace(cfg, **{name: getattr(a, name)})
-    if a.no_uncertainty:
-        cfg = dataclasses.replace(cfg, no_uncertainty=True)
-    cfg = apply_set(cfg, a.set)
-    cfg.validate()
-    return cfg
-
-
-def _init_paths(init: str) -> tuple[Path, Path]:
-    p = Path(init)
-    return (
-        (p / "policy.pt", p / "world_model.pt")
-        if p.is_dir()
-        else (p, p.with_name("world_model.pt"))
-    )
-
-
-def _init_profile(init: str) -> str:
-    try:
-        return ck.load_checkpoint(_init_paths(init)[0])["profile"]
-    except ck.CheckpointError as exc:
-        raise UsageError(f"--init {init}: {exc}") from None
-
-
-# ------------------------------------------------------------------------------------- the run
-@dataclass
-class Start:
-    """Where an iteration begins (the paper's Algorithm 1): iteration 1 from scratch, imitation
-    first; a later one (--init) from the previous run's policy and world model, without
-    imitation, keeping the input scaling the policy learned with."""
-
-    norm: Any  # data.Normalisation
-    iteration: int
-    stages: list[str]
-    policy: dict | None = None  # the previous checkpoint's state dicts
-    world_model: dict | None = None
-
-
-def run(cfg: IterateConfig, dist: Dist | None = None) -> dict:
-    """One DIRL iteration, as Algorithm 1 reads: data → (imitation) → world model → refinement,
-    then the policy exported and the run reported. Returns a summary (also on non-zero ranks)."""
-    dist = dist or Dist()
-    cfg.validate()
-    episodes, train_eps, val_eps = read_episodes(cfg)
-    world = read_world_episodes(cfg)
-    start = starting_point(cfg, train_eps)
-    policy, world_model = build_models(cfg, start)
-    digest = data_digest([*train_eps, *(world.train if world else [])])
-    existing = resume_checkpoints(cfg, start, digest, policy, world_model)
-    ctx, common = run_context(cfg, dist, start, digest, train_eps)
-    data = StageData(cfg, train_eps, val_eps, world)
-    results = {}
-    try:
-        for stage in start.stages:
-            results[stage] = train_stage(
-                stage, cfg, policy, world_model, data, start.norm, ctx, existing.get(stage)
-            )
-    finally:
-        if ctx.writer is not None:
-            ctx.writer.flush()
-    summary = {"iteration": start.iteration, "stages": results, "out": cfg.out}
-    if not dist.is_main:
-        return summary
-    save_final(cfg, common, start, results, policy, world_model)
-    from training.run_report import finish_run
-
-    summary.update(
-        finish_run(
-            cfg, Path(cfg.out), policy=policy, world_model=world_model, norm=start.norm,
-            train_eps=train_eps, val_eps=val_eps, episodes=episodes, digest=digest,
-            world=world, results=results, iteration=start.iteration, device=dist.device,
-            writer=ctx.writer, world_size=dist.world_size,
-        )
-    )  # fmt: skip
-    ctx.writer.close()
-    return summary
-
-
-def starting_point(cfg: IterateConfig, train_eps: list) -> Start:
-    if not cfg.init:
-        iteration = 1 if cfg.refine_steps > 0 else 0
-        return Start(compute_normalisation(train_eps), iteration, list(ck.STAGES))
-    policy_path, wm_path = _init_paths(cfg.init)
-    try:
-        init_ckpt = ck.load_checkpoint(policy_path)
-        init_wm = ck.load_checkpoint(wm_path) if wm_path.is_file() else None
-    except ck.CheckpointError as exc:
-        raise UsageError(f"--init {cfg.init}: {exc}") from None
-    if init_ckpt["profile"] != cfg.profile:
-        raise UsageError(f"--init {cfg.init} has profile {init_ckpt['profile']}, not {cfg.profile}")
-    return Start(
-        norm=Normalisation.from_dict(init_ckpt["normalisation"]),
-        iteration=int(init_ckpt["iteration"]) + 1,
-        stages=(["imitation"] if cfg.reimitate else []) + ["world_model", "refine"],
-        policy=init_ckpt["policy"],
-        world_model=None if init_wm is None or cfg.world_model_fresh else init_wm["world_model"],
-    )
-
-
-def build_models(cfg: IterateConfig, start: Start):
-    from training.models import PolicyNet, WorldModel
-
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
-    policy, world_model = PolicyNet(cfg.profile_obj), WorldModel(cfg.profile_obj)
-    policy.set_normalisation(start.norm)
-    world_model.set_normalisation(start.norm)
-    if start.policy is not None:
-        policy.load_state_dict(start.policy)
-    if start.world_model is not None:
-        world_model.load_state_dict(start.world_model)
-    return policy, world_model
-
-
-def resume_checkpoints(cfg: IterateConfig, start: Start, digest: str, policy, world_model):
-    """The stages this run already checkpointed (running the command again resumes)."""
-    targets = {s: getattr(cfg, f"{s}_steps") for s in start.stages}
-    out = Path(cfg.out) / "checkpoints"
-    existing = ck.resumable(out, targets, profile=cfg.profile, digest=digest)
-    for stage in start.stages:  # later stages' checkpoints hold the newer weights: load in order
-        if stage in existing:
-            _load_weights(existing[stage], policy, world_model)
-    return existing
-
-
-def run_context(cfg: IterateConfig, dist: Dist, start: Start, digest: str, train_eps: list):
-    """What every stage shares: checkpoint fields, TensorBoard (rank 0), budget, progress."""
-    out, writer = Path(cfg.out), None
-    if dist.is_main:
-        out.mkdir(parents=True, exist_ok=True)
-        from torch.utils.tensorboard import SummaryWriter
-
-        writer = SummaryWriter(str(out / "tensorboard"))
-    common = {
-        "config": dataclasses.asdict(cfg),
-        "profile": cfg.profile,
-        "profile_fields": dataclasses.asdict(cfg.profile_obj),  # should the profile change
-        "normalisation": start.norm.to_dict(),
-        "data_digest": digest,
-        "iteration": start.iteration,
-        "code_version": ck.code_version(),
-        "episodes": [ep.name for ep in train_eps],
-    }
-    ctx = RunContext(
-        dist=dist, ckpt_dir=out / "checkpoints", common=common, writer=writer,
-        budget=Budget(cfg.stop_after or None), progress=cfg.progress,
-        num_workers=cfg.num_workers,
-    )  # fmt: skip
-    return ctx, common
-
-
-def train_stage(stage, cfg, policy, world_model, data: StageData, norm, ctx, resume):
-    from training.imitation import train_imitation
-    from training.refine import train_refine
-    from training.world_model_stage import collision_class_weight, train_world_model
-
-    if stage == "imitation":
-        free, val_free = data.imitation()
-        return train_imitation(cfg, policy, free, ctx, resume=resume, val_dataset=val_free)
-    if stage == "world_model":
-        windows = data.world_windows
-        weight = cfg.collision_weight or collision_class_weight(windows.step_labels())
-        return train_world_model(
-            cfg, world_model, windows, norm, ctx, collision_weight=weight,
-            policy=policy, resume=resume, val_dataset=data.world_val_windows,
-        )  # fmt: skip
-    demonstrations = data.demonstrations() if cfg.refine_w_imitation else None
-    if cfg.refine_outcomes:
-        from training.refine_outcomes import refine_by_outcomes
-
-        return refine_by_outcomes(cfg, policy, data, ctx, resume, demonstrations)
-    return train_refine(
-        cfg, policy, world_model, data.windows, norm, ctx,
-        resume=resume, val_dataset=data.val_windows, demonstrations=demonstrations,
-    )  # fmt: skip
-
-
-def save_final(cfg, common: dict, start: Start, results: dict, policy, world_model) -> None:
-    """policy.pt (what export reads) and world_model.pt (what the next iteration continues)."""
-    out = Path(cfg.out)
-    stages = start.stages
-    last = next((s for s in reversed(stages) if results[s].steps > 0), stages[-1])
-    final = {**common, "stage": last, "step": results[last].steps, "optimizer": None}
-    ck.save_checkpoint(
-        out / "policy.pt", **{**final, "policy": policy.state_dict(), "world_model": None}
-    )
-    ck.save_checkpoint(
-        out / "world_model.pt",
-        **{**final, "policy": policy.state_dict(), "world_model": world_model.state_dict()},
-    )
-
-
-def _load_weights(c: dict, policy, world_model) -> None:
-    if c["policy"]:
-        policy.load_state_dict(c["policy"])
-    if c["world_model"] is not None:
-        world_model.load_state_dict(c["world_model"])
+    cfg = config_from(a)
+    if a.iterations is not None:
+        if a.iterations < 1:
+            raise UsageError(f"--iterations must be >= 1, got {a.iterations}")
+        if a.init or a.world_episodes:
+            raise UsageError("--iterations starts from the demonstrations: no --init or "
+                             "--world-episodes")  # fmt: skip
+        if not cfg.export:
+            raise UsageError("--iterations drives the exported policy: export must stay on")
+    return a, cfg
 
 
 def main(argv: list[str] | None = None) -> int:
-    dist = None
     try:
-        cfg = parse_args(argv)
-        try:
-            dist = init_distributed(cfg.device)
-        except ValueError as exc:
-            raise UsageError(str(exc)) from None
-        summary = run(cfg, dist)
-        if dist.is_main:
-            for line in summary.get("lines", []):
-                print(line)
-        return summary.get("exit_code", 0)
-    except (UserError, ck.CheckpointError) as exc:
-        if dist is None or dist.is_main:
-            print(f"carrt-train: error: {exc}", file=sys.stderr)
+        a, cfg = parse(argv)
+    except UserError as exc:
+        print(f"carrt-train: error: {exc}", file=sys.stderr)
         return 2
-    except StopRequested as exc:
-        if dist is None or dist.is_main:
-            print(f"carrt-train: stopped at {exc} (stop_after); run the same command to resume")
-        return 0
-    except FloatingPointError as exc:
-        print(
-            f"carrt-train: training diverged: {exc}; the last checkpoint is intact", file=sys.stderr
-        )
-        return 1
-    except Interrupted as exc:
-        if dist is None or dist.is_main:
-            print(f"carrt-train: interrupted at {exc}; checkpoint saved, run the same command "
-                  "to resume", file=sys.stderr)  # fmt: skip
-        return 130
-    except KeyboardInterrupt:
-        print("carrt-train: interrupted; run the same command to resume from the last checkpoint",
-              file=sys.stderr)  # fmt: skip
-        return 130
-    finally:
-        shutdown_distributed()
+    if a.iterations is None:  # carrt-train as it always was: one iteration
+        return guarded(lambda: cfg)
+    try:
+        return loop(a, cfg)
+    except UserError as exc:
+        print(f"carrt-train: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def loop(a: argparse.Namespace, cfg: IterateConfig) -> int:
+    """Algorithm 1, top to bottom. Returns the exit status (0 also when it stops for the car)."""
+    out = Path(cfg.out)
+    demonstrations = list(cfg.episodes)
+
+    # 1. Imitation, once: π₀ learns the person's demonstrations (no world model, no refinement).
+    imitation = dataclasses.replace(cfg, out=str(out / "iter_0"), world_model_steps=0,
+                                    refine_steps=0)  # fmt: skip
+    finished, code = train(imitation, "imitation")
+    if not finished:
+        return code
+
+    # 2. N iterations: world model on all data → refinement → π_k drives → its episodes join.
+    data = list(demonstrations)
+    for k in range(1, a.iterations + 1):
+        here = out / f"iter_{k}"
+        iteration = dataclasses.replace(
+            cfg, out=str(here), init=str(out / f"iter_{k - 1}"), episodes=tuple(data),
+            reimitate=cfg.reimitate or (a.takeovers and k > 1),
+        )  # fmt: skip
+        finished, code = train(iteration, f"iteration {k}: world model → refinement")
+        if not finished:
+            return code
+        drives = here / "drives"
+        if a.drive == "sim":
+            drive_in_simulator(a, here / "policy.onnx", drives, k)
+        elif not driven(drives):
+            tell_the_person(a, here, drives, k)
+            return 0
+        data.append(str(drives))
+
+    last = out / f"iter_{a.iterations}"
+    print(f"carrt-train: {a.iterations} iteration(s) done; the policy: {last / 'policy.onnx'}; "
+          f"report: {last / 'report.md'}. Run again with --iterations {a.iterations + 1} to "
+          "go on.")  # fmt: skip
+    return 0
+
+
+def train(cfg: IterateConfig, what: str) -> tuple[bool, int]:
+    """One iteration into cfg.out (training/iteration.py), skipped when it already finished; a
+    stopped one resumes from its checkpoints. (finished, exit status)."""
+    folder = Path(cfg.out)
+    if (folder / DONE).is_file():
+        print(f"carrt-train: {folder}: {what} (done)")
+        return True, 0
+    print(f"carrt-train: {folder}: {what}", flush=True)
+    code = guarded(lambda: cfg)
+    finished = code == 0 and (folder / "policy.onnx").is_file()  # not when stop_after stopped it
+    if finished:
+        (folder / DONE).touch()
+    return finished, code
+
+
+def drive_in_simulator(a: argparse.Namespace, model: Path, drives: Path, k: int) -> None:
+    """π_k drives the training placements in the simulator and records, as a user's `carrt
+    drive --sim --autopilot --record` would (with --takeovers the scripted expert takes over
+    before a crash). The drives run in worker processes (training/sim_data.py)."""
+    from training.sim_data import drive_jobs, parse_tracks, run_jobs
+
+    if (drives / DONE).is_file():
+        print(f"carrt-train: {drives}: drives (done)")
+        return
+    layouts = [x.strip() for x in a.drive_layouts.split(",") if x.strip()]
+    jobs = drive_jobs(
+        drives, model, parse_tracks(a.drive_tracks), layouts, a.drive_seconds,
+        intervene=a.takeovers, seed_offset=DRIVE_SEED_STRIDE * k,
+    )  # fmt: skip
+    print(f"carrt-train: {drives}: π_{k} drives {len(jobs)} placement(s) in the simulator",
+          flush=True)  # fmt: skip
+    run_jobs(jobs, max(1, a.jobs), f"drives {k}")
+    (drives / DONE).touch()
+
+
+def driven(drives: Path) -> bool:
+    """Whether the person has put π_k's recorded episodes into `drives`."""
+    try:
+        return bool(list_episodes([str(drives)]))
+    except UserError:  # no such folder, or nothing recorded in it yet
+        return False
+
+
+def tell_the_person(a: argparse.Namespace, here: Path, drives: Path, k: int) -> None:
+    """The car's turn: how to drive π_k and where its episodes go for the run to go on."""
+    take_over = (" Take over with the stick before a crash: your commands label the states the "
+                 "policy reached.") if a.takeovers else ""  # fmt: skip
+    print(
+        f"carrt-train: iteration {k} is trained and exported: {here / 'policy.onnx'}\n"
+        f"  1. copy it to the car and drive it there, recording (a collision or e-stop ends an "
+        f"episode):{take_over}\n"
+        f"       carrt drive --model policy.onnx --config car.toml --record --out drives_{k}\n"
+        f"  2. copy the recorded episodes (drives_{k}/) into {drives}/\n"
+        f"  3. run this same command again: iteration {k + 1} learns from them"
+    )
 
 
 if __name__ == "__main__":

@@ -195,8 +195,8 @@ def _mlp(cin: int, cout: int) -> nn.Sequential:
 def _rnn_backward_outside_training(training: bool):
     """cuDNN has no RNN backward outside training mode, and refinement differentiates the
     frozen world model (eval mode: its BatchNorm statistics must not move) with respect to the
-    actions; there the GRUs run on PyTorch's own kernels (found on the first GPU run, 2026-11-25:
-    "cudnn RNN backward can only be called in training mode"). Elsewhere: unchanged."""
+    actions; there the GRUs run on PyTorch's own kernels (cuDNN refuses: "cudnn RNN backward
+    can only be called in training mode"). Elsewhere: unchanged."""
     if training or not torch.is_grad_enabled():
         return contextlib.nullcontext()
     return torch.backends.cudnn.flags(enabled=False)

@@ -6,49 +6,31 @@ uncertainties those actions lead to, and the policy descends
 
     Σ_t [ −w_spd·ŝ_t + w_coll·p̂(collision)_t + w_unc·(u_i + u_s + u_c)_t ]
 
-ŝ is in m/s (de-normalised), p̂ = (e₁+1)/S is the Dirichlet's expected collision probability
-(with `collision_prior_correction`, our safeguard, the world model's class weight divided back
-out of its odds first: WorldModel.imagine), and each uncertainty is clipped at
-`uncertainty_clip` because u = (1+1/ν)β/(α−1) explodes as α → 1 and a single such step would
-otherwise own the whole gradient. w_unc = 0 is the paper's "-unc" ablation
-(`--no-uncertainty`).
+ŝ is in m/s (de-normalised), p̂ = (e₁+1)/S is the Dirichlet's expected collision probability,
+and each uncertainty is clipped at `uncertainty_clip` because u = (1+1/ν)β/(α−1) explodes as
+α → 1 and a single such step would otherwise own the whole gradient. w_unc = 0 is the paper's
+"-unc" ablation (`--no-uncertainty`).
 
-Safeguard (ours, not the paper's): `refine_w_anchor`·Σ_t |μ_t − μ⁰_t|² keeps the plan near the
-policy refinement started from (μ⁰, frozen), so a world model that is wrong about some actions
-cannot drag the policy far from what it learned to do on real data. 0 is the paper's pure form.
-The anchor measures against the policy THIS refinement started from, so over iterations the
-drift adds up. A second safeguard, `refine_w_imitation`·(imitation's L1 on a batch of the
-demonstrations, drawn each step), keeps μ near what the person did on the frames where they
-drove: refinement may move the plan only where the world model's gain beats that cost. Why:
-the objective rewards speed without collisions, not progress along the track, and in the
-simulator (where the infield has no wall) refined policies learned to circle off the track at
-full speed, collision-free; the demonstrations are what says "this is the track".
+carrt's safeguards (IterateConfig's safeguard group; all off is the paper's pure form):
 
-A third, `refine_center_gradient`, subtracts from the world model's gradient on the sampled
-actions its mean over the batch of start frames. What is left tells each start's plan how to
-differ from the others' (brake before this obstacle, steer away from that one); what goes is
-the part that would move every plan alike. Why: on a one-way track a world model learns
-preferences that belong to the track, not to the situation — steering to one side is "safer"
-on average because of where the car usually is — and a few hundred steps of refinement follow
-that average first. Measured on validation placements (2026-11-24, 3 seeds): uncentred, the
-collision term of iteration 2 moved every plan's steering by −0.02 to −0.04 and completion
-fell from 0.80/0.81/0.76 to 0.61/0.44/0.62 within 100 steps (without the collision term:
-0.83/0.72/0.85). The mean throttle gradient (the speed reward's "faster everywhere") goes
-with it, so centred refinement trades speed between situations rather than raising it overall.
-False: the paper's form.
+- `collision_prior_correction`: p̂ with the world model's collision class weight divided back
+  out of its odds (WorldModel.imagine), so the objective sees a probability, not a weighted one.
+- `refine_w_anchor`·Σ_t |μ_t − μ⁰_t|² keeps the plan near the policy refinement started from
+  (μ⁰, frozen): a world model wrong about some actions cannot drag the policy far from what it
+  learned on real data. The anchor is this refinement's start, so over iterations drift adds up.
+- `refine_w_imitation`·(imitation's L1 on a batch of demonstrations, drawn each step) keeps μ
+  near what the person did: the objective rewards speed without collisions, not progress along
+  the track, and the demonstrations are what says "this is the track".
+- `refine_center_gradient` subtracts from the world model's gradient on the sampled actions its
+  mean over the batch of start frames: what is left tells each start's plan how to differ from
+  the others' (brake before this obstacle); what goes is the part that would move every plan
+  alike (a preference that belongs to the track, not to the situation).
+- `refine_steering` False keeps the world model's gradient off the steering channel, so only
+  the throttle moves through it (True is the paper's form).
 
-A fourth, `refine_search`, replaces the gradient through the world model by a search in its
-imagination (training/refine_search.py): μ is pulled toward whichever of a fixed set of
-alternatives the world model imagines best, because it orders whole alternatives far better
-than its gradient at the plan points (measured there). False: the paper's gradient.
-
-A fifth, `refine_steering` False, keeps the world model's gradient off the steering channel
-(a hook zeroing it on the sampled actions): refinement then moves only the throttle through the
-world model, and the anchor and imitation terms hold the steering. Why: on the counterfactual
-check the gradient's sign at the plan agreed with the true difference 0.38–0.50 of the time for
-steering and 0.57–0.67 for throttle (iteration 1, three seeds), and faster was truly better at
-most starts. Measured by driving (docs/dirl_study.md, "null candidates"): its candidates drove
-no better than the same policy moved as far at random. True: the paper's form.
+What was measured behind each lives in research/ (research/variants/NOTES.md, research/LOG.md).
+Other refinements (by search, from recorded outcomes) are research variants: they replace the
+loss of one step through `step_loss` (research/variants/).
 
 Frozen means eval() + requires_grad False (WorldModel.freeze()): no parameter moves and the
 BatchNorm running statistics stay those learned on real data — in train mode the imagined
@@ -74,7 +56,6 @@ from training.data import take
 from training.held_out import held_out
 from training.imitation import imitation_loss
 from training.models import sample_actions
-from training.refine_search import search_loss, search_targets
 from training.trainer import RunContext, StageResult, StageSpec, per_rank_batch, run_stage
 
 if TYPE_CHECKING:
@@ -165,19 +146,6 @@ def gradient_step(cfg: IterateConfig, world_model, batch: dict, actions, weights
     return refine_objective(imagined, *weights)
 
 
-def search_step(cfg: IterateConfig, world_model, batch: dict, actions, mu, weights: tuple):
-    """`refine_search`: L1 from μ to the imagined-best alternative (training/refine_search.py).
-    0·Σ actions keeps σ in the graph, as imitation does, for DistributedDataParallel."""
-    targets, chosen = search_targets(
-        world_model, batch["image"], batch["speed"], mu,
-        lambda imagined: sequence_objective(imagined, *weights),
-        cfg.uncertainty_clip, cfg.collision_prior_correction, cfg.refine_search_margin,
-    )  # fmt: skip
-    pull = search_loss(mu, targets)
-    loss = cfg.refine_w_search * pull + 0.0 * actions.sum()
-    return loss, {"search_l1": pull.detach(), "moved": (chosen > 0).float().mean()}
-
-
 def uncertainty_weight(cfg: IterateConfig) -> float:
     return 0.0 if cfg.no_uncertainty else cfg.refine_w_uncertainty
 
@@ -193,9 +161,12 @@ def train_refine(
     resume: dict | None = None,
     val_dataset=None,
     demonstrations=None,
+    step_loss=None,
 ) -> StageResult:
     """Refine `policy` in place against the frozen `world_model` from the dataset's start frames;
-    `demonstrations` (an ImitationDataset) feeds the `refine_w_imitation` term."""
+    `demonstrations` (an ImitationDataset) feeds the `refine_w_imitation` term. `step_loss(cfg,
+    world_model, batch, actions, mu, weights)` → (loss, metrics) replaces the paper's imagined
+    objective (a research variant); the safeguard terms are added to either."""
     ctx = ctx or RunContext()
     device = ctx.dist.device
     policy.to(device)
@@ -214,8 +185,8 @@ def train_refine(
     def loss_fn(model: nn.Module, batch: dict, step: int):
         eps = noise((len(batch["speed"]), horizon, 2), cfg.seed, step, ctx.dist.rank, device)
         actions, mu = model(batch["image"], batch["speed"], eps)
-        if cfg.refine_search:
-            loss, metrics = search_step(cfg, world_model, batch, actions, mu, weights)
+        if step_loss is not None:
+            loss, metrics = step_loss(cfg, world_model, batch, actions, mu, weights)
         else:
             loss, metrics = gradient_step(cfg, world_model, batch, actions, weights)
         if start is not None:
@@ -258,8 +229,8 @@ def train_refine(
 def candidate_keeper(cfg: IterateConfig, policy: nn.Module, ctx: RunContext):
     """after_step for run_stage: every `refine_candidates_every` steps, the policy as it is then,
     as a checkpoint export and `--init` read (OUT/candidates/refine<step>.pt). Why: the imagined
-    objective is not the track (its rank correlation with the true one is ~0.3), so how many
-    steps of it help is decided by driving the candidates (training/select_by_driving.py)."""
+    objective is not the track, so how many steps of it help can be decided by driving the
+    candidates (research/variants/select_by_driving.py)."""
     every = cfg.refine_candidates_every
     if not every or ctx.ckpt_dir is None or not ctx.dist.is_main:
         return None

@@ -3,17 +3,24 @@
 report.md is what a person reads before putting the policy on the car: which data, how far
 each stage got, whether the world model beats the trivial baselines on episodes it never saw,
 and whether the export passed its parity check. metrics.json holds the same numbers for tools.
+
+The export runs as its own process, `python -m export` (carrt-export), exactly as a person
+would run it: the arrows run firmware_bridge <- carrt <- training <- export, so training/ never
+imports export/, and the command layer (this end-of-run step) calls it after training.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 from training.evaluate import evaluate
 from training.figures import loss_curves, reveries, uncertainty_vs_error
-from training.refine_drift import report_drift
 
 
 def _fmt(x, digits: int = 4) -> str:
@@ -25,24 +32,31 @@ def _fmt(x, digits: int = 4) -> str:
 
 
 def _export(cfg, out: Path) -> tuple[list[str], dict | None, int]:
-    """(report lines, ExportReport as a dict, exit code). A missing export/ is not an error."""
+    """(report lines, ExportReport as a dict, exit code): `python -m export` (carrt-export) on
+    policy.pt, in its own process. A missing export/ (or onnx) is not an error."""
     if not cfg.export:
         return ["export skipped (export=false)"], None, 0
-    try:
-        from export import export_policy
-    except ImportError as exc:
-        return [f"export skipped: export/ is not available ({exc})"], None, 0
-    try:
-        rep = export_policy(out / "policy.pt", out / "policy.onnx", list(cfg.episodes))
-    except Exception as exc:  # refused or failed: the run's weights are still in policy.pt
-        return [f"export FAILED: {' '.join(str(exc).split())}"], None, 1
-    return rep.render(), rep.as_dict(), 0
+    for module in ("export", "onnx"):
+        if importlib.util.find_spec(module) is None:
+            return [f"export skipped: {module} is not available"], None, 0
+    with tempfile.TemporaryDirectory() as tmp:
+        info = Path(tmp) / "export.json"
+        argv = [sys.executable, "-m", "export", str(out / "policy.pt"), "-o",
+                str(out / "policy.onnx"), "--episodes", *cfg.episodes,
+                "--json-out", str(info)]  # fmt: skip
+        done = subprocess.run(argv, capture_output=True, text=True)
+        if done.returncode != 0 or not info.is_file():  # refused or failed: policy.pt is intact
+            why = (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1]
+            return [f"export FAILED: {' '.join(why.split())}"], None, 1
+        return done.stdout.rstrip("\n").splitlines(), json.loads(info.read_text()), 0
 
 
 def finish_run(
     cfg, out: Path, *, policy, world_model, norm, train_eps, val_eps, episodes, digest,
-    results, iteration, device, writer=None, world_size=1, world=None,
+    results, iteration, device, writer=None, world_size=1, world=None, extras=(),
 ) -> dict:  # fmt: skip
+    """Metrics, figures, export and report of a finished iteration; `extras` are research
+    variants' report sections (training.iteration.Variants.report)."""
     from training.data import WindowDataset, placement_key, takeover_labels
 
     held_out = bool(val_eps)
@@ -59,9 +73,9 @@ def finish_run(
                 writer.add_scalar(f"held_out/{k}", v, iteration)
 
     figures: dict[str, str] = {}
-    # the held-out windows, decoded once for the reveries figure and the refinement's drift
+    # the held-out windows, decoded once for the reveries figure and the research extras
     windows = None
-    if cfg.figures or cfg.refine_steps > 0:
+    if cfg.figures or extras:
         windows = WindowDataset(
             eval_eps, profile.horizon, predict_size=profile.predict_size,
             takeovers_as_collisions=cfg.takeovers_as_collisions,
@@ -79,18 +93,12 @@ def finish_run(
         }
 
     export_lines, export_info, exit_code = _export(cfg, out)
-    counterfactual = None
-    world_model_trained = cfg.world_model_steps > 0 or cfg.init
-    if cfg.counterfactual_starts > 0 and world_model_trained and (out / "policy.onnx").is_file():
-        from training.counterfactual import check_run
-
-        counterfactual = check_run(
-            out, None, cfg.counterfactual_layout, cfg.counterfactual_tracks,
-            cfg.counterfactual_starts,
-        )  # fmt: skip
-    refinement = None
-    if windows is not None:
-        refinement = report_drift(cfg, out, policy, world_model, windows, device)
+    sections: dict[str, tuple] = {}
+    for extra in extras:
+        found = extra(cfg, out, policy=policy, world_model=world_model, windows=windows,
+                      device=device)  # fmt: skip
+        if found is not None:
+            sections[found[0]] = found[1:]
     stages = {
         name: {
             "steps": r.steps,
@@ -118,11 +126,12 @@ def finish_run(
         "iteration": iteration, "profile": cfg.profile, "world_size": world_size,
         "device": str(device), "data": data, "stages": stages,
         "metrics": metrics, "figures": figures, "export": export_info,
-        "normalisation": norm.to_dict(), "counterfactual": counterfactual,
-        "refine_drift": refinement,
+        "normalisation": norm.to_dict(),
+        **{key: value for key, (value, _lines) in sections.items()},
     }  # fmt: skip
     (out / "metrics.json").write_text(json.dumps(_finite(record), indent=2, default=str) + "\n")
-    (out / "report.md").write_text(render(cfg, record, export_lines))
+    extra_md = [line for _value, lines in sections.values() for line in lines]
+    (out / "report.md").write_text(render(cfg, record, export_lines, extra_md))
     lines = [f"wrote {out / 'report.md'}", *export_lines]
     return {"metrics": metrics, "record": record, "lines": lines, "exit_code": exit_code}
 
@@ -149,7 +158,7 @@ def _world_data(world) -> dict:
     }
 
 
-def render(cfg, r: dict, export_lines: list[str]) -> str:
+def render(cfg, r: dict, export_lines: list[str], extra_md: list[str] = ()) -> str:
     d, m = r["data"], r["metrics"]
     src = "held-out episodes" if m.get("held_out") else "TRAINING episodes (no held-out split)"
     md = [
@@ -224,36 +233,7 @@ def render(cfg, r: dict, export_lines: list[str]) -> str:
             + " |"
         )
         md.append("")
-    if r.get("counterfactual"):
-        from training.counterfactual import by_sequence_table, describe
-
-        c = r["counterfactual"]
-        md += [
-            f"## Counterfactual check (simulator, placements {cfg.counterfactual_tracks} of "
-            f"`{cfg.counterfactual_layout}`)",
-            "",
-            "Action sequences replayed in the simulator from the same start, imagined by the "
-            "world model (training/counterfactual.py):",
-            "",
-            describe(c),
-            "",
-            *by_sequence_table(c),
-            "",
-        ]
-    if r.get("refine_drift"):
-        from training.refine_drift import describe as describe_drift
-
-        md += [
-            "## Where refinement moved the plan (held-out frames)",
-            "",
-            "The plan of the policy refinement started from against the refined one, and what "
-            "the world model imagines of each (training/refine_drift.py). A large move the "
-            "uncertainty does not rise for is one the uncertainty term could not hold back: "
-            "judge it by driving.",
-            "",
-            describe_drift(r["refine_drift"]),
-            "",
-        ]
+    md += list(extra_md)
     if r["figures"]:
         md += ["## Figures", ""]
         md += [f"### {title}\n\n![{title}]({p})\n" for title, p in r["figures"].items()]

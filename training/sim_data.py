@@ -28,6 +28,7 @@ import contextlib
 import io
 import json
 import sys
+import textwrap
 from concurrent.futures import as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,9 +41,8 @@ from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import EXIT_USAGE, UserError
 from carrt.sim.pool import worker_pool
 
-# Held out, never recorded for training: `carrt eval`'s default 100-104, 105-124 (the study's
-# until 2026-11-25: 5 placements alone judged DIRL against IL by their own noise) and 125-199
-# (since 2026-11-25: per-placement differences are heavy-tailed, 25 placements still did).
+# Held out, never recorded for training: `carrt eval`'s default 100-104 and the study's
+# evaluation placements 105-199 (research/README.md).
 EVALUATION_TRACKS = frozenset(range(100, 200))
 TASKS_PER_WORKER = 25  # placements a worker process runs before a fresh pool replaces it
 
@@ -205,11 +205,41 @@ def count_frames(*dirs: Path) -> int:
     return sum(read_episode(p).n for p in list_episodes([str(d) for d in dirs]))
 
 
+# What each subcommand records, and an example: `carrt-sim-data <what> --help`.
+SUBCOMMANDS = {
+    "demos": (
+        "Demonstrations: the scripted expert drives each placement from random places at rest, "
+        "with the loop's noise injection half of the time (recoveries), recorded as a person's "
+        "`carrt teleop --record` would be. The data of imitation (the first policy).",
+        "carrt-sim-data demos --out data/expert --tracks 1000-1019 --episodes 4 --jobs 2",
+    ),
+    "interventions": (
+        "Take-over rounds: the policy drives; the expert takes over before a collision and its "
+        "commands label the states the policy itself reached.",
+        "carrt-sim-data interventions --model runs/iter1/policy.onnx --out data/takeovers1 "
+        "--tracks 1000-1019",
+    ),
+    "drives": (
+        "A DIRL iteration's data: the policy drives alone; every collision is labelled and "
+        "followed by the auto-reset (the world model's crash examples).",
+        "carrt-sim-data drives --model runs/iter1/policy.onnx --out data/drives1 "
+        "--tracks 1000-1019",
+    ),
+}
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="carrt-sim-data", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="carrt-sim-data", description=__doc__, formatter_class=argparse.RawTextHelpFormatter
+    )
     sub = parser.add_subparsers(dest="what", required=True)
     for name in ("demos", "interventions", "drives"):
-        p = sub.add_parser(name)
+        what, example = SUBCOMMANDS[name]
+        p = sub.add_parser(
+            name, help=what.split(":")[0], description=textwrap.fill(what, 79),
+            epilog=f"example:\n  {example}",
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )  # fmt: skip
         p.add_argument("--out", required=True, help="episode directory to fill")
         p.add_argument("--tracks", default="1000-1149", help="placement seeds (ranges, commas)")
         p.add_argument("--layouts", default="hard", help="comma list, taken in turn")

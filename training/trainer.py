@@ -153,6 +153,8 @@ class RunContext:
     budget: Budget = field(default_factory=Budget)
     progress: bool = False
     num_workers: int = 0
+    pace: Any = None  # training.pace.Pace on rank 0 with progress on: expected time, slow runs
+    profile: str = ""  # the profile's name, for pace's step rates
 
     def checkpoint_path(self, stage: str) -> Path | None:
         return None if self.ckpt_dir is None else self.ckpt_dir / f"{stage}.pt"
@@ -337,6 +339,8 @@ def run_stage(
     show = ctx.progress and ctx.dist.is_main
     bar = tqdm(total=spec.steps, initial=start, desc=spec.name, disable=not show, mininterval=0.5)
     t0 = time.perf_counter()
+    if ctx.pace is not None:
+        ctx.pace.begin(ctx.profile, spec.name, spec.batch_size, start, spec.steps)
     try:
         with _Signals() as signals:
             for step in range(result.steps, spec.steps):
@@ -366,6 +370,8 @@ def run_stage(
                             ctx.writer.add_scalar(f"{spec.name}/{k}", v, done)
                     bar.set_postfix(loss=f"{scalars['loss']:.4g}", refresh=False)
                 bar.update(1)
+                if ctx.pace is not None:
+                    ctx.pace.step()
                 if after_step is not None:
                     after_step(done)
                 stop = ctx.budget.spend()
@@ -380,6 +386,8 @@ def run_stage(
     finally:
         bar.close()
         result.seconds = time.perf_counter() - t0
+    if ctx.pace is not None:
+        ctx.pace.end()
     return result
 
 

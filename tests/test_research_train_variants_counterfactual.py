@@ -1,4 +1,5 @@
-"""training.counterfactual: a world model's imagination scored against the simulator's replays
+"""research.variants.counterfactual: a world model's imagination scored against the simulator's
+replays
 (collision AUROC within a start, speed error against the constant-speed baseline, Spearman's ρ
 of the refinement objective)."""
 
@@ -12,9 +13,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from training import counterfactual as cf  # noqa: E402
-from training.iterate import main as iterate  # noqa: E402
-from training.refine_search import alternatives  # noqa: E402
+from research.variants import counterfactual as cf  # noqa: E402
+from research.variants.refine_search import alternatives  # noqa: E402
+from research.variants.train import main as iterate  # noqa: E402
 
 
 def test_auroc_counts_only_pairs_from_the_same_start():

@@ -1,4 +1,5 @@
-"""training.refine_search: refinement that pulls the plan toward the alternative the world model
+"""research.variants.refine_search: refinement that pulls the plan toward the alternative the world
+model
 imagines best (refine_search), instead of following its gradient at the plan."""
 
 from __future__ import annotations
@@ -11,11 +12,11 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from carrt.sim.counterfactual import SEQUENCE_NAMES, sequences  # noqa: E402
+from research.variants.refine_search import SEARCH_SEQUENCES, alternatives, best_moves  # noqa: E402
 from training.config import PRESETS, IterateConfig  # noqa: E402
 from training.data import WindowDataset, compute_normalisation, load_episodes, take  # noqa: E402
 from training.models import PolicyNet  # noqa: E402
 from training.refine import train_refine  # noqa: E402
-from training.refine_search import SEARCH_SEQUENCES, alternatives, best_moves  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 

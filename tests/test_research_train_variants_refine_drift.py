@@ -1,4 +1,4 @@
-"""training.refine_drift: where refinement moved the plan, and what the world model (and an
+"""research.variants.refine_drift: where refinement moved the plan, and what the world model (and an
 ensemble of them) imagined there."""
 
 from __future__ import annotations
@@ -11,8 +11,11 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from types import SimpleNamespace  # noqa: E402
+
+from research.variants import refine_drift as rd  # noqa: E402
+from research.variants.train import main  # noqa: E402
 from training import checkpoint as ck  # noqa: E402
-from training import refine_drift as rd  # noqa: E402
 from training.config import IterateConfig  # noqa: E402
 from training.data import Normalisation  # noqa: E402
 from training.models import PolicyNet, WorldModel  # noqa: E402
@@ -146,4 +149,64 @@ def test_bad_input_is_one_line_and_exit_2(runs, tmp_path, capsys, bad):
         (refined / "world_model.pt").write_bytes(b"junk")
     assert rd.main(argv) == 2
     err = capsys.readouterr().err
-    assert err.startswith("carrt-refine-drift: error: ") and err.count("\n") == 1
+    assert (
+        err.startswith("python -m research.variants.refine_drift: error: ") and err.count("\n") == 1
+    )
+
+
+SMALL = [
+    "--profile", "tiny", "--set", "threads=1", "--set", "progress=false",
+    "--set", "imitation_batch_size=8", "--set", "world_model_batch_size=4",
+    "--set", "refine_batch_size=4", "--set", "eval_windows=64",
+]  # fmt: skip
+QUICK = [*SMALL, "--set", "export=false", "--set", "figures=false", "--set", "ckpt_every=2"]
+
+
+def steps(imitation: int, world_model: int, refine: int) -> list[str]:
+    return ["--set", f"imitation_steps={imitation}", "--set", f"world_model_steps={world_model}",
+            "--set", f"refine_steps={refine}"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def iteration1(sim_episodes, tmp_path_factory):
+    """One iteration through research/variants/train.py (carrt-train with the variants)."""
+    out = tmp_path_factory.mktemp("runs") / "iter1"
+    before = torch.get_num_threads()
+    rc = main(["--episodes", str(sim_episodes), "--out", str(out), *QUICK, *steps(6, 6, 4)])
+    torch.set_num_threads(before)
+    return rc, out
+
+
+def test_the_report_says_where_refinement_moved_the_plan(iteration1, sim_episodes, tmp_path):
+    """From the world-model stage's policy in iteration 1, from --init's policy in a run that
+    only refines; a run that refines nothing has no such section."""
+    _, first = iteration1
+    record = json.loads((first / "metrics.json").read_text())["refine_drift"]
+    assert record["frames"] > 0 and record["members"] == 1
+    before = ck.load_policy(first / "checkpoints" / "world_model.pt")[0]
+    after = ck.load_policy(first / "policy.pt")[0]
+    moved_weights = after.state_dict()
+    changed = any(not torch.equal(v, moved_weights[k]) for k, v in before.state_dict().items())
+    assert changed == (record["moved"]["steering_abs"] + record["moved"]["throttle_abs"] > 0)
+    assert "## Where refinement moved the plan" in (first / "report.md").read_text()
+    for refine, has in ((2, True), (0, False)):
+        out = tmp_path / f"refine{refine}"
+        argv = ["--episodes", str(sim_episodes), "--out", str(out), "--init", str(first)]
+        assert main([*argv, *QUICK, *steps(0, 0, refine)]) == 0
+        record = json.loads((out / "metrics.json").read_text())["refine_drift"]
+        assert (record is not None) == has
+        if has:  # no earlier stage in this run: the start is --init's policy
+            start = rd.policy_before_refinement(SimpleNamespace(init=str(first)), out)
+            init = ck.load_checkpoint(first / "policy.pt")["policy"]
+            assert all(torch.equal(v, init[k]) for k, v in start.state_dict().items())
+
+
+def test_carrt_train_itself_reports_no_drift(sim_episodes, tmp_path):
+    """The product's carrt-train runs without the research variants: no drift section."""
+    from training.iteration import main as carrt_train
+
+    out = tmp_path / "run"
+    argv = ["--episodes", str(sim_episodes), "--out", str(out), *QUICK, *steps(2, 2, 2)]
+    assert carrt_train(argv) == 0
+    assert "refine_drift" not in json.loads((out / "metrics.json").read_text())
+    assert "## Where refinement moved the plan" not in (out / "report.md").read_text()

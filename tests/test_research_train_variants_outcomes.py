@@ -1,4 +1,4 @@
-"""training/refine_outcomes.py: refinement from the drives' recorded outcomes.
+"""research/variants/refine_outcomes.py: refinement from the drives' recorded outcomes.
 
 The return of a window is the paper's objective over the next H recorded steps (a take-over
 counts as a collision); the baseline is cross-fitted, so a window's own outcome never sets it;
@@ -20,18 +20,18 @@ from episode_factory import make_step, write_episode  # noqa: E402
 
 from carrt.episodes.reader import read_episode  # noqa: E402
 from carrt.interfaces import Mode  # noqa: E402
-from training import checkpoint as ck  # noqa: E402
-from training.config import IterateConfig  # noqa: E402
-from training.iterate import main  # noqa: E402
-from training.models import PolicyNet  # noqa: E402
-from training.profiles import get_profile  # noqa: E402
-from training.refine_outcomes import (  # noqa: E402
+from research.variants.refine_outcomes import (  # noqa: E402
     OutcomeDataset,
     advantage_weights,
     cross_fitted_baseline,
     train_refine_outcomes,
     window_returns,
 )
+from research.variants.train import main  # noqa: E402
+from training import checkpoint as ck  # noqa: E402
+from training.config import IterateConfig  # noqa: E402
+from training.models import PolicyNet  # noqa: E402
+from training.profiles import get_profile  # noqa: E402
 
 
 def test_a_window_s_return_is_speed_less_events_over_the_next_h_steps():

@@ -1,6 +1,6 @@
 """Choosing how far to refine by driving: refinement keeps candidates, selection drives each one
 on validation placements through `carrt eval` and keeps the incumbent unless another beats it by
-more than the placements' noise (training/select_by_driving.py).
+more than the placements' noise (research/variants/select_by_driving.py).
 """
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from research.variants import select_by_driving as sel  # noqa: E402
+from research.variants.train import main as train  # noqa: E402
 from training import checkpoint as ck  # noqa: E402
-from training import select_by_driving as sel  # noqa: E402
-from training.iterate import main as train  # noqa: E402
 
 TINY = [
     "--profile", "tiny", "--set", "threads=1", "--set", "progress=false",

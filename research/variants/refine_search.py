@@ -2,7 +2,7 @@
 
 The paper's refinement follows the gradient of the imagined objective at the policy's plan.
 That direction is what the world model knows least: on the counterfactual check (2026-11-24,
-3 seeds, training/counterfactual.py) the objective's gradient at the plan had the sign of the
+3 seeds, counterfactual.py here) the objective's gradient at the plan had the sign of the
 true difference 0.47-0.63 of the time (a coin by iteration 3), while the same world models
 ordered whole alternatives against the plan as reality did 0.86-0.93 of the time for braking,
 lifting and a 0.6 steering shift. Search uses what the model knows: from each start frame the
@@ -21,7 +21,14 @@ per margin, so a margin can be chosen on the check's placements rather than the 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
+
+from training.refine import sequence_objective
+
+if TYPE_CHECKING:
+    from training.config import IterateConfig
 
 # The alternatives, in the order and with the names of carrt.sim.counterfactual's sequences
 # (its "random" left out: a search needs no baseline), so the check can score exactly this set.
@@ -72,3 +79,16 @@ def search_loss(mu: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     """Mean |μ − target| over starts, steps and both actions (imitation's L1, unweighted): zero
     and without gradient where the target is the plan itself."""
     return (mu - targets).abs().mean()
+
+
+def search_step(cfg: IterateConfig, world_model, batch: dict, actions, mu, weights: tuple):
+    """`refine_search`: L1 from μ to the imagined-best alternative (this module).
+    0·Σ actions keeps σ in the graph, as imitation does, for DistributedDataParallel."""
+    targets, chosen = search_targets(
+        world_model, batch["image"], batch["speed"], mu,
+        lambda imagined: sequence_objective(imagined, *weights),
+        cfg.uncertainty_clip, cfg.collision_prior_correction, cfg.refine_search_margin,
+    )  # fmt: skip
+    pull = search_loss(mu, targets)
+    loss = cfg.refine_w_search * pull + 0.0 * actions.sum()
+    return loss, {"search_l1": pull.detach(), "moved": (chosen > 0).float().mean()}

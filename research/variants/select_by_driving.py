@@ -1,11 +1,11 @@
 """Choose among policies by driving them on validation placements (simulator only).
 
-    python -m training.select_by_driving --out runs/iter2/selected \
+    python -m research.variants.select_by_driving --out runs/iter2/selected \
         --candidates start=runs/iter1/policy.pt runs/iter2/candidates/refine*.pt \
         --episodes data/ --tracks 200-219 --keep runs/iter2/world_model.pt
 
 Why: refinement optimises the world model's imagined objective, which agrees only loosely with
-driving (its rank correlation with the true objective is ~0.3, training/counterfactual.py), and
+driving (its rank correlation with the true objective is ~0.3, counterfactual.py here), and
 past some number of steps it makes the policy drive worse (the study: iterations 2-3 lost
 completion to the policy they started from). So the refinement's candidates (the policy every
 `refine_candidates_every` steps, and the policy it started from) are each exported and driven
@@ -46,6 +46,9 @@ import shutil
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: make `research` and `training` importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from carrt.errors import EXIT_USAGE, UserError
 from carrt.policy import file_sha256
@@ -240,7 +243,9 @@ def select(
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m training.select_by_driving", description=__doc__)
+    p = argparse.ArgumentParser(
+        prog="python -m research.variants.select_by_driving", description=__doc__
+    )
     p.add_argument("--candidates", nargs="+", required=True, metavar="[NAME=]CKPT")
     p.add_argument("--out", required=True, help="where the chosen policy goes")
     p.add_argument("--episodes", nargs="+", required=True, help="frames for the export's check")

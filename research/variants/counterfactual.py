@@ -1,7 +1,7 @@
 """Does the world model know what actions do? Its imagination scored against the simulator's truth.
 
-    carrt-counterfactual --run runs/iter1                 # tracks 200-204
-    carrt-counterfactual --run runs/iter1 --data cf.npz   # a set made before
+    python -m research.variants.counterfactual --run runs/iter1                 # tracks 200-204
+    python -m research.variants.counterfactual --run runs/iter1 --data cf.npz   # a set made before
 
 Refinement improves the policy only as far as the world model ranks action sequences the way
 reality would. Losses on recorded windows cannot show that: the recordings hold the actions a
@@ -37,16 +37,19 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: make `research` and `training` importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from types import SimpleNamespace
 
 import numpy as np
 import torch
 
 from carrt.policy import file_sha256
+from research.variants.refine_search import SEARCH_SEQUENCES, best_moves
 from training import checkpoint as ck
 from training.evaluate import auroc, spearman
 from training.refine import sequence_objective, uncertainty_weight
-from training.refine_search import SEARCH_SEQUENCES, best_moves
 
 TARGETS = {"collision_auroc": 0.85, "rank_correlation": 0.5}  # issue 14's bar for trusting it
 
@@ -363,7 +366,9 @@ def search_lines(search: dict, variant: str = "") -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="carrt-counterfactual", description=__doc__)
+    p = argparse.ArgumentParser(
+        prog="python -m research.variants.counterfactual", description=__doc__
+    )
     p.add_argument("--run", required=True, help="iterate.py run directory (world_model.pt)")
     p.add_argument("--data", help="counterfactual .npz (default: generate RUN/counterfactual.npz)")
     p.add_argument("--layout", default="hard")

@@ -1,13 +1,13 @@
 """Where refinement took the policy, as the world model saw it: did its uncertainty notice?
 
-    carrt-refine-drift --run runs/refined --start runs/world-model
-    carrt-refine-drift --run runs/refined --start runs/world-model \\
+    python -m research.variants.refine_drift --run runs/refined --start runs/world-model
+    python -m research.variants.refine_drift --run runs/refined --start runs/world-model \\
         --members runs/member1 runs/member2 --json drift.json
 
 The paper's uncertainty term is there to keep refinement where the world model is right (its
 Table II: without it, 32.67 interventions against 4.33). It can only do that if the world
 model's uncertainty grows where refinement moves the plan. The counterfactual check
-(training/counterfactual.py) scores fixed perturbations of the plan; this scores the one move
+(counterfactual.py here) scores fixed perturbations of the plan; this scores the one move
 that matters, the one refinement made: from the same frames, the plan of the policy refinement
 started from (`--start`, a run directory) against the refined one (`--run`), how far it moved
 per action channel, and what the world model imagines of each (speed, collision probability
@@ -33,14 +33,17 @@ import argparse
 import json
 import sys
 from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: make `research` and `training` importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from types import SimpleNamespace
 
 import numpy as np
 import torch
 
+from research.variants.counterfactual import corrects, load
 from training import checkpoint as ck
 from training.config import UsageError
-from training.counterfactual import corrects, load
 
 TERMS = ("speed", "p_collision", "u_image", "u_speed", "u_collision")
 
@@ -191,7 +194,8 @@ def describe(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="carrt-refine-drift", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m research.variants.refine_drift",
+                                description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     p.add_argument("--run", required=True, help="the refined run (policy.pt, world_model.pt)")
     p.add_argument("--start", required=True, help="the run whose policy refinement started from")
@@ -203,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
         result = check(Path(a.run), Path(a.start), Path(a.data) if a.data else None,
                        [Path(m) for m in a.members])  # fmt: skip
     except (UsageError, ck.CheckpointError) as exc:
-        print(f"carrt-refine-drift: error: {exc}", file=sys.stderr)
+        print(f"python -m research.variants.refine_drift: error: {exc}", file=sys.stderr)
         return 2
     print(describe(result))
     if a.json:

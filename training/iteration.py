@@ -1,0 +1,402 @@
+"""One DIRL iteration: data → imitation → world model → refinement → export → report.
+
+    carrt-train --episodes episodes/ --out runs/iter1 --profile cpu
+    carrt-train --episodes episodes/ --out runs/iter2 --init runs/iter1
+    carrt-train --episodes episodes/ --world-episodes sloppy/ --out runs/r --init runs/iter1
+    torchrun --nproc_per_node 2 training/iterate.py …          # DistributedDataParallel
+
+This is the machinery of one `carrt-train` run (training/iterate.py runs the paper's whole loop
+from it; without --iterations it runs exactly one iteration, as below).
+
+Iteration 1 (no --init) learns the policy by imitation, then the world model, then refines the
+policy in the world model's imagination. A later iteration (--init runs/iterN-1) starts from the
+previous policy and world model, trains the world model on ALL the episodes given (old + new)
+and refines again; imitation does not run again (the paper's algorithm, DESIGN §2) unless
+`reimitate` is set: then the previous policy first learns by imitation on every labelled frame,
+the person's take-overs in the new episodes included. With --world-episodes the world model
+learns those episodes instead (imitation and refinement still read --episodes).
+
+Every number lives in IterateConfig (training/config.py); a profile name picks model sizes and
+a preset of steps and batch sizes (PRESETS), and `--set field=value` overrides any field.
+Checkpoints land in OUT/checkpoints every ckpt_every steps; Ctrl-C or SIGTERM finishes the step
+in flight and checkpoints it (a second Ctrl-C stops at once), and running the same command again
+resumes exactly where the run stopped. Only rank 0 writes files. Exit status: 0 done (or stopped by
+stop_after), 1 diverged or export refused, 2 bad input, 130 interrupted.
+
+Research variants (research/variants/: refinement by search or by outcomes, the counterfactual
+check, the drift report) plug in through `Variants`; this module never imports them, and
+without them a config that asks for one is refused in one line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from carrt.errors import UserError
+from training import checkpoint as ck
+from training.config import PRESETS, IterateConfig, UsageError, apply_set
+from training.data import Normalisation, compute_normalisation, data_digest
+from training.profiles import PROFILES
+from training.stage_data import StageData, read_episodes, read_world_episodes
+from training.trainer import (
+    Budget,
+    Dist,
+    Interrupted,
+    RunContext,
+    StopRequested,
+    init_distributed,
+    shutdown_distributed,
+)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, exit 2 — not argparse's usage block
+        raise UsageError(message)
+
+
+def add_iteration_args(p: argparse.ArgumentParser) -> None:
+    """The flags of one iteration (carrt-train's, which iterate.py's loop flags extend)."""
+    p.add_argument("--episodes", nargs="+", required=True, metavar="DIR")
+    p.add_argument(
+        "--world-episodes", nargs="+", default=[], metavar="DIR",
+        help="episodes the world model learns instead of --episodes (e.g. a sloppier drive)",
+    )  # fmt: skip
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--init", metavar="DIR", help="previous iteration's run directory")
+    p.add_argument("--profile", help=f"{' | '.join(PROFILES)} (default: --init's, else cpu)")
+    p.add_argument("--steps", type=int, help="optimizer steps of every stage")
+    p.add_argument("--no-uncertainty", action="store_true", help="w_unc = 0 (the -unc ablation)")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--device", help="auto | cpu | cuda | cuda:N")
+    p.add_argument(
+        "--set", action="append", default=[], metavar="FIELD=VALUE",
+        help="any IterateConfig field (training/config.py), e.g. refine_lr=1e-5; repeatable",
+    )  # fmt: skip
+
+
+def parse_args(argv: list[str] | None = None, prog: str = "carrt-train") -> IterateConfig:
+    p = _Parser(prog=prog, description=__doc__.split("\n")[0])
+    add_iteration_args(p)
+    return config_from(p.parse_args(argv))
+
+
+def config_from(a: argparse.Namespace) -> IterateConfig:
+    """The IterateConfig of parsed iteration flags: defaults, the profile's preset, then the
+    flags, then --set."""
+    profile = a.profile or (_init_profile(a.init) if a.init else "cpu")
+    if profile not in PROFILES:
+        raise UsageError(f"unknown profile {profile!r}; choose one of {', '.join(PROFILES)}")
+    cfg = IterateConfig(
+        episodes=tuple(a.episodes), world_episodes=tuple(a.world_episodes), out=a.out,
+        init=a.init, profile=profile,
+    )  # fmt: skip
+    cfg = dataclasses.replace(cfg, **PRESETS.get(profile, {}))
+    if a.steps is not None:
+        cfg = dataclasses.replace(
+            cfg, imitation_steps=a.steps, world_model_steps=a.steps, refine_steps=a.steps
+        )
+    for name in ("seed", "device"):
+        if getattr(a, name) is not None:
+            cfg = dataclasses.replace(cfg, **{name: getattr(a, name)})
+    if a.no_uncertainty:
+        cfg = dataclasses.replace(cfg, no_uncertainty=True)
+    cfg = apply_set(cfg, a.set)
+    cfg.validate()
+    return cfg
+
+
+def _init_paths(init: str) -> tuple[Path, Path]:
+    p = Path(init)
+    return (
+        (p / "policy.pt", p / "world_model.pt")
+        if p.is_dir()
+        else (p, p.with_name("world_model.pt"))
+    )
+
+
+def _init_profile(init: str) -> str:
+    try:
+        return ck.load_checkpoint(_init_paths(init)[0])["profile"]
+    except ck.CheckpointError as exc:
+        raise UsageError(f"--init {init}: {exc}") from None
+
+
+# ------------------------------------------------------------------------------------- the run
+RESEARCH_ONLY = ("refine_search", "refine_outcomes", "counterfactual_starts")
+
+
+@dataclass
+class Variants:
+    """Research variants plugged into an iteration by research/variants/train.py; carrt-train
+    runs with none. `refine(cfg, policy, world_model, data, norm, ctx, resume, demonstrations)`
+    returns the refinement stage's StageResult, or None to run the paper's refinement; each
+    `report` entry, called after export as f(cfg, out, policy=…, world_model=…, windows=…,
+    device=…), returns (metrics.json key, value, report.md lines) or None."""
+
+    refine: Callable | None = None
+    report: list[Callable] = field(default_factory=list)
+
+    def check(self, cfg: IterateConfig) -> None:
+        if self.refine is not None or self.report:
+            return
+        asked = [name for name in RESEARCH_ONLY if getattr(cfg, name)]
+        if asked:
+            raise UsageError(
+                f"{asked[0]} is a research variant: run it with research/variants/train.py "
+                "(a repository checkout), not carrt-train"
+            )
+
+
+@dataclass
+class Start:
+    """Where an iteration begins (the paper's Algorithm 1): iteration 1 from scratch, imitation
+    first; a later one (--init) from the previous run's policy and world model, without
+    imitation, keeping the input scaling the policy learned with."""
+
+    norm: Any  # data.Normalisation
+    iteration: int
+    stages: list[str]
+    policy: dict | None = None  # the previous checkpoint's state dicts
+    world_model: dict | None = None
+
+
+def run(cfg: IterateConfig, dist: Dist | None = None, variants: Variants | None = None) -> dict:
+    """One DIRL iteration, as Algorithm 1 reads: data → (imitation) → world model → refinement,
+    then the policy exported and the run reported. Returns a summary (also on non-zero ranks)."""
+    dist = dist or Dist()
+    variants = variants or Variants()
+    cfg.validate()
+    variants.check(cfg)
+    episodes, train_eps, val_eps = read_episodes(cfg)
+    world = read_world_episodes(cfg)
+    start = starting_point(cfg, train_eps)
+    policy, world_model = build_models(cfg, start)
+    digest = data_digest([*train_eps, *(world.train if world else [])])
+    existing = resume_checkpoints(cfg, start, digest, policy, world_model)
+    ctx, common = run_context(cfg, dist, start, digest, train_eps)
+    if ctx.pace is not None:
+        ctx.pace.announce(cfg.profile, [
+            (s, getattr(cfg, f"{s}_steps") - (existing[s]["step"] if s in existing else 0),
+             getattr(cfg, f"{s}_batch_size")) for s in start.stages
+        ])  # fmt: skip
+    data = StageData(cfg, train_eps, val_eps, world)
+    results = {}
+    try:
+        for stage in start.stages:
+            results[stage] = train_stage(
+                stage,
+                cfg,
+                policy,
+                world_model,
+                data,
+                start.norm,
+                ctx,
+                existing.get(stage),
+                variants,
+            )
+    finally:
+        if ctx.writer is not None:
+            ctx.writer.flush()
+    summary = {"iteration": start.iteration, "stages": results, "out": cfg.out}
+    if not dist.is_main:
+        return summary
+    save_final(cfg, common, start, results, policy, world_model)
+    from training.run_report import finish_run
+
+    summary.update(
+        finish_run(
+            cfg, Path(cfg.out), policy=policy, world_model=world_model, norm=start.norm,
+            train_eps=train_eps, val_eps=val_eps, episodes=episodes, digest=digest,
+            world=world, results=results, iteration=start.iteration, device=dist.device,
+            writer=ctx.writer, world_size=dist.world_size, extras=variants.report,
+        )
+    )  # fmt: skip
+    ctx.writer.close()
+    return summary
+
+
+def starting_point(cfg: IterateConfig, train_eps: list) -> Start:
+    if not cfg.init:
+        iteration = 1 if cfg.refine_steps > 0 else 0
+        return Start(compute_normalisation(train_eps), iteration, list(ck.STAGES))
+    policy_path, wm_path = _init_paths(cfg.init)
+    try:
+        init_ckpt = ck.load_checkpoint(policy_path)
+        init_wm = ck.load_checkpoint(wm_path) if wm_path.is_file() else None
+    except ck.CheckpointError as exc:
+        raise UsageError(f"--init {cfg.init}: {exc}") from None
+    if init_ckpt["profile"] != cfg.profile:
+        raise UsageError(f"--init {cfg.init} has profile {init_ckpt['profile']}, not {cfg.profile}")
+    return Start(
+        norm=Normalisation.from_dict(init_ckpt["normalisation"]),
+        iteration=int(init_ckpt["iteration"]) + 1,
+        stages=(["imitation"] if cfg.reimitate else []) + ["world_model", "refine"],
+        policy=init_ckpt["policy"],
+        world_model=None if init_wm is None or cfg.world_model_fresh else init_wm["world_model"],
+    )
+
+
+def build_models(cfg: IterateConfig, start: Start):
+    from training.models import PolicyNet, WorldModel
+
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    policy, world_model = PolicyNet(cfg.profile_obj), WorldModel(cfg.profile_obj)
+    policy.set_normalisation(start.norm)
+    world_model.set_normalisation(start.norm)
+    if start.policy is not None:
+        policy.load_state_dict(start.policy)
+    if start.world_model is not None:
+        world_model.load_state_dict(start.world_model)
+    return policy, world_model
+
+
+def resume_checkpoints(cfg: IterateConfig, start: Start, digest: str, policy, world_model):
+    """The stages this run already checkpointed (running the command again resumes)."""
+    targets = {s: getattr(cfg, f"{s}_steps") for s in start.stages}
+    out = Path(cfg.out) / "checkpoints"
+    existing = ck.resumable(out, targets, profile=cfg.profile, digest=digest)
+    for stage in start.stages:  # later stages' checkpoints hold the newer weights: load in order
+        if stage in existing:
+            _load_weights(existing[stage], policy, world_model)
+    return existing
+
+
+def run_context(cfg: IterateConfig, dist: Dist, start: Start, digest: str, train_eps: list):
+    """What every stage shares: checkpoint fields, TensorBoard (rank 0), budget, progress."""
+    out, writer = Path(cfg.out), None
+    if dist.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(out / "tensorboard"))
+    common = {
+        "config": dataclasses.asdict(cfg),
+        "profile": cfg.profile,
+        "profile_fields": dataclasses.asdict(cfg.profile_obj),  # should the profile change
+        "normalisation": start.norm.to_dict(),
+        "data_digest": digest,
+        "iteration": start.iteration,
+        "code_version": ck.code_version(),
+        "episodes": [ep.name for ep in train_eps],
+    }
+    ctx = RunContext(
+        dist=dist, ckpt_dir=out / "checkpoints", common=common, writer=writer,
+        budget=Budget(cfg.stop_after or None), progress=cfg.progress,
+        num_workers=cfg.num_workers, pace=pace_of(cfg, dist), profile=cfg.profile,
+    )  # fmt: skip
+    return ctx, common
+
+
+def pace_of(cfg: IterateConfig, dist: Dist):
+    """training/pace.py on rank 0 with progress on: the expected duration and slow-run warning."""
+    if not (cfg.progress and dist.is_main):
+        return None
+    from training.pace import Pace
+
+    return Pace(f"{dist.device}/threads{torch.get_num_threads()}")
+
+
+def train_stage(stage, cfg, policy, world_model, data: StageData, norm, ctx, resume, variants=None):
+    from training.imitation import train_imitation
+    from training.refine import train_refine
+    from training.world_model_stage import collision_class_weight, train_world_model
+
+    if stage == "imitation":
+        free, val_free = data.imitation()
+        return train_imitation(cfg, policy, free, ctx, resume=resume, val_dataset=val_free)
+    if stage == "world_model":
+        windows = data.world_windows
+        weight = cfg.collision_weight or collision_class_weight(windows.step_labels())
+        return train_world_model(
+            cfg, world_model, windows, norm, ctx, collision_weight=weight,
+            policy=policy, resume=resume, val_dataset=data.world_val_windows,
+        )  # fmt: skip
+    demonstrations = data.demonstrations() if cfg.refine_w_imitation else None
+    if variants is not None and variants.refine is not None:
+        result = variants.refine(cfg, policy, world_model, data, norm, ctx, resume, demonstrations)
+        if result is not None:
+            return result
+    return train_refine(
+        cfg, policy, world_model, data.windows, norm, ctx,
+        resume=resume, val_dataset=data.val_windows, demonstrations=demonstrations,
+    )  # fmt: skip
+
+
+def save_final(cfg, common: dict, start: Start, results: dict, policy, world_model) -> None:
+    """policy.pt (what export reads) and world_model.pt (what the next iteration continues)."""
+    out = Path(cfg.out)
+    stages = start.stages
+    last = next((s for s in reversed(stages) if results[s].steps > 0), stages[-1])
+    final = {**common, "stage": last, "step": results[last].steps, "optimizer": None}
+    ck.save_checkpoint(
+        out / "policy.pt", **{**final, "policy": policy.state_dict(), "world_model": None}
+    )
+    ck.save_checkpoint(
+        out / "world_model.pt",
+        **{**final, "policy": policy.state_dict(), "world_model": world_model.state_dict()},
+    )
+
+
+def _load_weights(c: dict, policy, world_model) -> None:
+    if c["policy"]:
+        policy.load_state_dict(c["policy"])
+    if c["world_model"] is not None:
+        world_model.load_state_dict(c["world_model"])
+
+
+def main(
+    argv: list[str] | None = None, variants: Variants | None = None, prog: str = "carrt-train"
+) -> int:
+    """One iteration from the command line; errors are one line (exit codes: module docstring)."""
+    return guarded(lambda: parse_args(argv, prog), variants)
+
+
+def guarded(make_config: Callable[[], IterateConfig], variants: Variants | None = None) -> int:
+    """Run the iteration `make_config()` describes, turning what can go wrong into one line and
+    the exit status (the loop in iterate.py calls this for each of its iterations)."""
+    dist = None
+    try:
+        cfg = make_config()
+        try:
+            dist = init_distributed(cfg.device)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+        summary = run(cfg, dist, variants)
+        if dist.is_main:
+            for line in summary.get("lines", []):
+                print(line)
+        return summary.get("exit_code", 0)
+    except (UserError, ck.CheckpointError) as exc:
+        if dist is None or dist.is_main:
+            print(f"carrt-train: error: {exc}", file=sys.stderr)
+        return 2
+    except StopRequested as exc:
+        if dist is None or dist.is_main:
+            print(f"carrt-train: stopped at {exc} (stop_after); run the same command to resume")
+        return 0
+    except FloatingPointError as exc:
+        print(
+            f"carrt-train: training diverged: {exc}; the last checkpoint is intact", file=sys.stderr
+        )
+        return 1
+    except Interrupted as exc:
+        if dist is None or dist.is_main:
+            print(f"carrt-train: interrupted at {exc}; checkpoint saved, run the same command "
+                  "to resume", file=sys.stderr)  # fmt: skip
+        return 130
+    except KeyboardInterrupt:
+        print("carrt-train: interrupted; run the same command to resume from the last checkpoint",
+              file=sys.stderr)  # fmt: skip
+        return 130
+    finally:
+        shutdown_distributed()
