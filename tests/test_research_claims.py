@@ -1,0 +1,125 @@
+"""research/README.md's claims table: every claim reproduces by the command printed beside it.
+
+The fastest of them (the robustness claims: seconds, from two kept results files) run here end
+to end, as a user would type them, from a directory other than the repository's; their output
+must hold the numbers the table prints in bold beside them. The others train for an hour or
+more; for every row the results files it names must exist in research/results/, and its
+commands must name modules and settings that exist."""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "research" / "README.md"
+RESULTS = ROOT / "research" / "results"
+
+
+def claims() -> list[dict]:
+    """The claims table's rows: number, result cell, commands (backticked `python -m research.`
+    or `python training/…` or `carrt …` or `make …`), results files."""
+    rows = []
+    for line in README.read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) != 5 or not cells[0].isdigit():
+            continue
+        commands = [c for c in re.findall(r"`([^`]+)`", cells[3])
+                    if c.startswith(("python ", "carrt ", "make "))]  # fmt: skip
+        files = re.findall(r"`([^`]+)`", cells[4])
+        rows.append({"n": int(cells[0]), "result": cells[2], "commands": commands,
+                     "files": files})  # fmt: skip
+    return rows
+
+
+def bold_numbers(result: str) -> list[str]:
+    """The bold "±" figures of a result cell, with the README's minus sign as the CLI prints it."""
+    return [m.replace("−", "-") for m in re.findall(r"\*\*([−+-]?\d[^*]*± [\d.]+)\*\*", result)]
+
+
+ROWS = claims()
+ROBUSTNESS = [r for r in ROWS if any("research.robustness" in c for c in r["commands"])]
+
+
+def test_the_table_has_its_claims():
+    assert [r["n"] for r in ROWS] == list(range(1, len(ROWS) + 1))
+    assert len(ROWS) >= 13  # the paper's claims and carrt's measured results
+    assert len(ROBUSTNESS) >= 3
+
+
+@pytest.mark.parametrize("row", ROWS, ids=lambda r: f"claim{r['n']}")
+def test_each_claim_names_its_kept_results_and_a_command(row):
+    assert row["files"], f"claim {row['n']} names no results file"
+    for name in row["files"]:
+        assert (RESULTS / name).is_file(), f"claim {row['n']}: research/results/{name} missing"
+    assert row["commands"], f"claim {row['n']} has no command"
+
+
+@pytest.mark.parametrize("row", ROBUSTNESS, ids=lambda r: f"claim{r['n']}")
+def test_robustness_claims_reproduce_from_their_files(row, tmp_path):
+    """The command as printed, with the module run as a file from another directory (the
+    results paths are the repository's): its table holds each bold number of the claim."""
+    (command,) = [c for c in row["commands"] if "research.robustness" in c]
+    argv = shlex.split(command)
+    assert argv[:3] == ["python", "-m", "research.robustness"]
+    args = [str(ROOT / a) if a.startswith("research/") else a for a in argv[3:]]
+    out = subprocess.run([sys.executable, str(ROOT / "research" / "robustness.py"), *args],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    expected = bold_numbers(row["result"])
+    assert expected, f"claim {row['n']} prints no bold number for its command to check"
+    for number in expected:
+        assert number in out.stdout, f"claim {row['n']}: {number} not in\n{out.stdout}"
+
+
+def test_a_changed_number_fails_the_check(tmp_path):
+    """The check can fail: a figure one digit off is not in the command's output."""
+    row = ROBUSTNESS[0]
+    number = bold_numbers(row["result"])[0]
+    wrong = number[:-1] + str((int(number[-1]) + 1) % 10)
+    (command,) = [c for c in row["commands"] if "research.robustness" in c]
+    args = [str(ROOT / a) if a.startswith("research/") else a for a in shlex.split(command)[3:]]
+    out = subprocess.run([sys.executable, str(ROOT / "research" / "robustness.py"), *args],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert number in out.stdout and wrong not in out.stdout
+
+
+STUDIES = {
+    "research.takeover_check": ("research.takeover_config", "TakeoverConfig"),
+    "research.refine_loop": ("research.refine_loop", "LoopConfig"),
+    "research.world_model_swap": ("research.world_model_swap", "SwapConfig"),
+}
+
+
+@pytest.mark.parametrize("row", ROWS, ids=lambda r: f"claim{r['n']}")
+def test_study_commands_name_real_settings(row):
+    """Each study command of the table sets only fields its config (or StudyConfig, as
+    `study.FIELD`) has, to values they accept: the long runs are not run here, but their
+    commands cannot drift from the code. (`carrt` and `make` commands are the product's, checked
+    with the README's.)"""
+    import importlib
+
+    from research.check_steps import read_sets
+
+    for command in row["commands"]:
+        argv = shlex.split(command)
+        if argv[:2] != ["python", "-m"] or argv[2] not in STUDIES:
+            continue
+        module, name = STUDIES[argv[2]]
+        config = getattr(importlib.import_module(module), name)
+        _, cfg = read_sets(argv[3:], config(), argv[2], "doc", name)  # exit 2 on a wrong --set
+        assert isinstance(cfg, config)
+
+
+def test_a_wrong_setting_is_refused():
+    from research.check_steps import read_sets
+    from research.takeover_config import TakeoverConfig
+
+    with pytest.raises(SystemExit) as exc:
+        read_sets(["--set", "roundz=3"], TakeoverConfig(), "research.takeover_check", "d", "T")
+    assert exc.value.code == 2
