@@ -2,7 +2,7 @@
 every refined policy (training/refine_drift.py) and the ensemble members whose spread it
 reports beside the evidential uncertainty.
 
-Why a check needs it: -unc ended level with DIRL in every setting measured (docs/dirl_study.md,
+Why a check needs it: -unc ended level with DIRL in every setting measured (research/LOG.md,
 "Refinement on top of the take-over rounds, and -unc"). The paper's uncertainty term can only
 change what refinement does if the uncertainty rises where refinement moves the plan; these
 steps measure that for the evidential uncertainty of the world model refinement ran in and,

@@ -25,7 +25,7 @@ null.json with each one's plan move (steering and throttle separately) beside th
 as much on average (signed, mean Δ throttle over the frames and steps) as the --like
 candidate's, its steering untouched: the head's pre-tanh throttle biases moved alike, no world
 model behind it. Why: at σ 0.5 with a lasting-error person refinement improved driving on five
-seeds and mostly raised the throttle (docs/dirl_study.md); if this drives as well, the world
+seeds and mostly raised the throttle (research/LOG.md); if this drives as well, the world
 model's part in that was only "go a little faster".
 """
 

@@ -80,7 +80,7 @@ class CheckConfig:
     outcome_w_imitation: float = 1.0  # imitation's L1 on the demonstrations beside it
     outcome_temperature: float = 1.0  # τ of the advantage weights
     # rounds of refinement from outcomes (≥ 2 drives again); 2 drove best of 1-3 on validation
-    # placements 200-259 (docs/dirl_outcome_validation.json)
+    # placements 200-259 (docs/dirl_outcome_validation.json, in git at 38d191d)
     outcome_iterations: int = 2
     # "IL-equal<k>": imitation on the demonstrations plus the study's second pool (extra_tracks)
     # topped up to the frames the last outcomes iteration learnt from (the paper's comparison)

@@ -21,7 +21,7 @@ def usable_cores() -> int:
 @dataclass
 class StudyConfig:
     """Every number of the study. The defaults are its current design, the settings of the
-    runs of 2026-11-25 (docs/dirl_study.md: "Search from iteration 2" and the noisy demonstrations
+    runs of 2026-11-25 (research/LOG.md: "Search from iteration 2" and the noisy demonstrations
     after it); each table there gives the `--set`s it was run with."""
 
     out: str = "research/runs/dirl_sim"
@@ -54,8 +54,9 @@ class StudyConfig:
     iteration_tracks: tuple[str, ...] = ("1040-1054", "1055-1069", "1070-1084")
     # Noise on the policy's commands in those drives (noise.during_auto): without it steering
     # is a function of the place and the world model learns its collision risk backwards
-    # (docs/architecture.md, "what the world model can learn"); the paper's ±0.3 half the time
-    # was not enough, ±0.8 held 0.5-1.5 s for 80 % of the time was (counterfactual check).
+    # (docs/architecture.md at 38d191d, "what the world model can learn"); the paper's ±0.3
+    # half the time was not enough, ±0.8 held 0.5-1.5 s for 80 % of the time was
+    # (counterfactual check).
     drive_explore: bool = True
     explore_fraction: float = 0.8  # share of drive time perturbed (noise.fraction)
     explore_amplitude: float = 0.8  # uniform ± on steering and throttle (noise.amplitude)

@@ -48,7 +48,7 @@ from pathlib import Path
 
 # Seconds a step of each kind took, two steps at once on the 2-core EPYC with one torch thread and
 # one simulator process each: the ETA's guess for a kind until a step of it has run here. The
-# one-command study of 2026-11-26 (docs/dirl_study.md; research.takeover_check, the `cpu` profile):
+# one-command study of 2026-11-26 (research/LOG.md; research.takeover_check, the `cpu` profile):
 # demonstrations (one pool), imitation and IL at equal frames (the same 3000 steps), a round's
 # take-over drives and its re-imitation, world models, refinements, evaluations of 100
 # placements × 30 simulated s (that run's 50 took 47-65 s). The full study's kinds of
@@ -108,7 +108,7 @@ class Stopped(Exception):
 class StudyStep:
     """Runs one command with its output in OUT/logs/NAME.log; a failed command stops the study
     (the other chains stop before their next step). Counts finished steps against the plan
-    (steps by kind, bench/dirl_steps.plan; or a plain count) and prints an ETA. With
+    (steps by kind, research/dirl_steps.plan; or a plain count) and prints an ETA. With
     `report_only`, nothing runs: a step that has not finished raises NotRun."""
 
     def __init__(

@@ -38,7 +38,7 @@ class TakeoverConfig:
     refine_paper_form: bool = False
     # with refine: also a world model of the demonstrations alone (source "demos": the person's
     # own recordings, imperfect at σ > 0) and the same refinements in it, still from every
-    # frame. Measured (docs/dirl_study.md, "which data"): σ 0.5's demonstrations held 6 %
+    # frame. Measured (research/LOG.md, "which data"): σ 0.5's demonstrations held 6 %
     # collision frames and the steering response the rounds' world models lacked
     refine_in_demos: bool = False
     # with refine_in_demos: the σ of the demonstrations that world model learns; −1: the chain's

@@ -5,12 +5,12 @@
         --set world_out=research/runs/tau05 --set world_noise=1 --set world_rounds=2
 
 Why: with the lasting-error person (τ 0.5 s) refinement beat the round it started from at
-σ 0.5 on five seeds (+0.038 ± 0.009 completion) and did not at σ 0 or σ 1.0 (docs/dirl_study.md,
+σ 0.5 on five seeds (+0.038 ± 0.009 completion) and did not at σ 0 or σ 1.0 (research/LOG.md,
 "the lasting-error person on five seeds"). Each of those refinements changed two things at
 once: the policy it started from and the world model it ran in. Here one take-over check's last
 round's policy (`policy_out`, `policy_noise`, `policy_rounds`: research/takeover_check.py's OUT
 layout) is refined in ANOTHER check's world model of its last round's frames (`world_out`, …),
-everything else as that check's `refine` step ran it (bench/takeover_refine.refine_cmd: the
+everything else as that check's `refine` step ran it (research/takeover_refine.refine_cmd: the
 study's safeguards, its steps, the same seed, the start policy's own frames for the imitation
 term and the start states), and driven on the test placements (other `eval_tracks`, such as
 validation placements to choose a setting on, drive the check's own rows here too). With
