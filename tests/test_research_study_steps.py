@@ -85,7 +85,7 @@ def test_report_only_runs_nothing_and_names_each_chain_s_first_missing_step(tmp_
 
 def test_the_eta_weighs_the_steps_left_by_their_kind(tmp_path):
     """Three trainings and three evaluations planned, one at a time. Before anything ran, each
-    kind at its typical time (bench/study_steps.TYPICAL_S); a kind that ran, at its own mean;
+    kind at its typical time (research/study_steps.TYPICAL_S); a kind that ran, at its own mean;
     a step reused from identical weights counts as done and took nothing."""
     il, ev = TYPICAL_S["train il"], TYPICAL_S["eval"]
     step = StudyStep(tmp_path, {"train il": 3, "eval": 3}, parallel=1)

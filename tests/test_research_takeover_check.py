@@ -209,7 +209,7 @@ def test_robustness_rounds_give_the_noisy_chains_their_own_rounds_and_il_at_the_
 
 
 def test_every_step_of_the_checks_plan_has_a_typical_time_for_the_eta():
-    """The ETA's guess for a kind not run yet (bench/study_steps.typical_s): every kind the
+    """The ETA's guess for a kind not run yet (research/study_steps.typical_s): every kind the
     check plans, with every world model and refinement it can add, has one; only the drift
     reading (a network's forward passes) is guessed from its family's steps."""
     from research.study_steps import typical_s
