@@ -12,7 +12,12 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from carrt.sim.counterfactual import SEQUENCE_NAMES, sequences  # noqa: E402
-from research.variants.refine_search import SEARCH_SEQUENCES, alternatives, best_moves  # noqa: E402
+from research.variants.refine_search import (  # noqa: E402
+    SEARCH_SEQUENCES,
+    alternatives,
+    best_moves,
+    search_step,
+)
 from training.config import PRESETS, IterateConfig  # noqa: E402
 from training.data import WindowDataset, compute_normalisation, load_episodes, take  # noqa: E402
 from training.models import PolicyNet  # noqa: E402
@@ -83,7 +88,7 @@ def test_search_pulls_the_plan_toward_the_alternative_imagined_best(sim_episodes
     assert before > -0.2  # the untrained policy steers where the stand-in imagines a crash
     cfg = dataclasses.replace(cfg, refine_search=True, refine_steps=30, refine_batch_size=8,
                               refine_lr=3e-3, refine_w_anchor=0.0)  # fmt: skip
-    result = train_refine(cfg, policy, _SteeringRisk(), windows, norm)
+    result = train_refine(cfg, policy, _SteeringRisk(), windows, norm, step_loss=search_step)
     assert result.steps == 30
     assert result.history[0]["moved"] == 1.0  # every start had a safer alternative at first
     after = _steering(policy, batch)
@@ -97,6 +102,6 @@ def test_a_margin_no_alternative_beats_leaves_the_policy_as_it_was(sim_episodes)
     before = {k: v.clone() for k, v in policy.state_dict().items()}
     cfg = dataclasses.replace(cfg, refine_search=True, refine_search_margin=1e6, refine_steps=5,
                               refine_batch_size=8, refine_lr=3e-3, refine_w_anchor=0.0)  # fmt: skip
-    result = train_refine(cfg, policy, _SteeringRisk(), windows, norm)
+    result = train_refine(cfg, policy, _SteeringRisk(), windows, norm, step_loss=search_step)
     assert all(h["moved"] == 0.0 for h in result.history)
     assert all(torch.equal(before[k], v) for k, v in policy.state_dict().items())

@@ -258,6 +258,10 @@ def test_two_processes_with_gloo(sim_episodes, tmp_path):
         (["--out", "{tmp}/o", "--episodes", "{sim}", "--set", "seed=abc"], "not a valid int"),
         (["--out", "{tmp}/o", "--episodes", "{sim}", "--set", "refine_lr=0"], "refine_lr"),
         (["--out", "{tmp}/o", "--episodes", "{sim}", "--set", "novalue"], "field=value"),
+        (
+            ["--out", "{tmp}/o", "--episodes", "{sim}", "--set", "refine_search=true"],
+            "research variant",
+        ),
         (["--episodes", "{sim}"], "--out"),
         (["--out", "{tmp}/o", "--episodes", "{sim}", "--device", "gpu"], "not a device"),
         (["--out", "{tmp}/o", "--episodes", "{sim}", "--init", "{tmp}/nothing"], "--init"),

@@ -68,10 +68,6 @@ def test_the_loop_in_the_simulator_drives_and_learns_from_the_drives(
     assert f"{out / 'iter_1'}: iteration 1: world model → refinement (done)" in said
     assert f"{out / 'iter_1' / 'drives'}: drives (done)" in said
     assert episodes_learnt(out / "iter_2") == demos + len(drives)
-    second = ck.load_checkpoint(out / "iter_2" / "world_model.pt")
-    assert any(name in second["episodes"] for name in (p.parent.name for p in drives)) or (
-        len(second["episodes"]) < demos + len(drives)  # a drive's placement held out
-    )
     assert ck.load_checkpoint(out / "iter_2" / "policy.pt")["iteration"] == 2
     assert "2 iteration(s) done" in said
 

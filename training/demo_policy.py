@@ -111,8 +111,7 @@ def sloppy_world_refinement(
          "--noise-tau", "0.5", "--jobs", str(a.jobs)], work / ".done-sloppy")  # fmt: skip
     run(iterate(py, data, refined, a, "--world-episodes", str(sloppy), "--init", str(policy_dir),
                 "--set", "world_model_steps=3000", "--set", "refine_steps=300",
-                "--set", "refine_w_imitation=50", "--set", "counterfactual_starts=6",
-                "--set", "counterfactual_tracks=200-204"), refined / ".done")  # fmt: skip
+                "--set", "refine_w_imitation=50"), refined / ".done")  # fmt: skip
     return refined
 
 
