@@ -160,3 +160,43 @@ def test_the_check_finds_a_missing_flag_subcommand_target_and_module(tmp_path):
     assert "make no-such-target" in text
     assert "carrt.no_such_module" in text
     assert len(bad) == 4, text  # the last line's two commands (joined across `\`) are fine
+
+
+def set_problems(found: list[Command]) -> list[str]:
+    """`--set KEY=VALUE` in the docs names a real setting: an IterateConfig field for training
+    (training/config.py), a `section.key` of the car's config for carrt (carrt/config.py)."""
+    import dataclasses
+
+    from carrt.config import CarConfig
+    from training.config import IterateConfig
+
+    training_fields = {f.name for f in dataclasses.fields(IterateConfig)}
+    car = CarConfig()
+    car_keys = {
+        f"{s.name}.{f.name}"
+        for s in dataclasses.fields(car)
+        for f in dataclasses.fields(getattr(car, s.name))
+    }
+    out = []
+    for cmd in found:
+        values = [v for k, v in zip(cmd.words, cmd.words[1:], strict=False) if k == "--set"]
+        for value in values:
+            key = value.split("=")[0]
+            if not key or key.upper() == key:  # a placeholder: FIELD=VALUE, K=V
+                continue
+            if cmd.program in {"carrt-train", "python -m training.iterate"}:
+                ok = key in training_fields
+            elif cmd.program == "carrt":
+                ok = key in car_keys
+            else:
+                continue
+            if not ok:
+                out.append(f"{cmd.source}: `--set {value}`: no such setting for {cmd.program}")
+    return out
+
+
+def test_every_documented_set_names_a_real_setting():
+    assert not (bad := set_problems(commands())), "\n".join(bad)
+    sample = Command("doc.md:1", "carrt-train", ("--set", "no_such_field=1"), ("--set",), "")
+    car = Command("doc.md:2", "carrt", ("drive", "--set", "noise.nope=1"), ("--set",), "")
+    assert len(set_problems([sample, car])) == 2
