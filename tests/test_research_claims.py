@@ -60,6 +60,17 @@ def test_each_claim_names_its_kept_results_and_a_command(row):
     assert row["commands"], f"claim {row['n']} has no command"
 
 
+def test_results_earn_their_place():
+    """research/results/ holds what the claims cite and nothing else, within the tree's budget
+    (5 MB, 40 files, 8 figures): a superseded run leaves, and git history keeps it."""
+    cited = {name for row in ROWS for name in row["files"]}
+    held = {p.name for p in RESULTS.iterdir()}
+    assert held == cited, f"not cited: {sorted(held - cited)}; missing: {sorted(cited - held)}"
+    assert sum(p.stat().st_size for p in RESULTS.iterdir()) <= 5_000_000
+    assert len(held) <= 40
+    assert len([n for n in held if n.endswith(".png")]) <= 8
+
+
 @pytest.mark.parametrize("row", ROBUSTNESS, ids=lambda r: f"claim{r['n']}")
 def test_robustness_claims_reproduce_from_their_files(row, tmp_path):
     """The command as printed, with the module run as a file from another directory (the
