@@ -75,23 +75,28 @@ def test_the_loop_in_the_simulator_drives_and_learns_from_the_drives(
 def test_with_a_car_the_loop_stops_after_exporting_and_goes_on_when_the_drives_are_there(
     sim_episodes, tmp_path, capsys
 ):
+    """With --takeovers the person is told to take over, and the next iteration learns their
+    labels by imitation again before its world model."""
     out = tmp_path / "car"
-    assert loop(sim_episodes, out, "--iterations", "1") == 0
+    assert loop(sim_episodes, out, "--iterations", "2", "--takeovers") == 0
     said = capsys.readouterr().out
     assert (out / "iter_1" / "policy.onnx").is_file()
     assert "carrt drive --model policy.onnx" in said and "--record" in said
+    assert "Take over with the stick" in said
     assert str(out / "iter_1" / "drives") in said
-    assert "iteration(s) done" not in said
+    assert not (out / "iter_2").exists() and "iteration(s) done" not in said
 
-    assert loop(sim_episodes, out, "--iterations", "1") == 0  # nothing driven yet: same stop
+    assert loop(sim_episodes, out, "--iterations", "2", "--takeovers") == 0  # not driven yet
     said = capsys.readouterr().out
-    assert "(done)" in said and "carrt drive --model" in said
+    assert "(done)" in said and "carrt drive --model" in said and not (out / "iter_2").exists()
 
     recorded = sorted(p.parent for p in Path(sim_episodes).glob("*/meta.json"))[0]
     shutil.copytree(recorded, out / "iter_1" / "drives" / recorded.name)
-    assert loop(sim_episodes, out, "--iterations", "1") == 0
+    assert loop(sim_episodes, out, "--iterations", "2", "--takeovers") == 0
     said = capsys.readouterr().out
-    assert "carrt drive --model" not in said and "1 iteration(s) done" in said
+    assert "iteration 2: world model" in said and str(out / "iter_2" / "drives") in said
+    assert (out / "iter_2" / "checkpoints" / "imitation.pt").is_file()  # re-imitation
+    assert not (out / "iter_1" / "checkpoints" / "imitation.pt").exists()
 
 
 @pytest.mark.parametrize(
