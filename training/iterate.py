@@ -46,21 +46,38 @@ from carrt.errors import UserError
 from training.config import IterateConfig, UsageError
 from training.iteration import _Parser, add_iteration_args, config_from, guarded
 
+
+class _Help(argparse.RawDescriptionHelpFormatter):
+    """The examples as written in the docstring, the flags wrapped as usual."""
+
+
 DRIVE_SEED_STRIDE = 100_000  # iteration k's drives: simulator seeds placement + stride·k
 DONE = ".done"  # a finished step's marker, in its folder
 
 
 def parse(argv: list[str] | None) -> tuple[argparse.Namespace, IterateConfig]:
-    p = _Parser(prog="carrt-train", description=__doc__.split("\n")[0])
+    p = _Parser(
+        prog="carrt-train", description=__doc__.split("\n")[0],
+        epilog="examples:\n" + __doc__.split("\n\n")[1], formatter_class=_Help,
+    )  # fmt: skip
     add_iteration_args(p)
     loop = p.add_argument_group("the loop (Algorithm 1; without --iterations: one iteration)")
-    loop.add_argument("--iterations", type=int, metavar="N", help="world model → refine → drive")
-    loop.add_argument("--drive", choices=("car", "sim"), default="car", help="who drives π_k")
-    loop.add_argument("--takeovers", action="store_true", help="take-over rounds (see above)")
-    loop.add_argument("--drive-tracks", default="1000-1009", help="sim placements (1000-1009)")
-    loop.add_argument("--drive-layouts", default="hard", help="sim layouts, taken in turn")
-    loop.add_argument("--drive-seconds", type=float, default=60.0, help="sim s per placement")
-    loop.add_argument("--jobs", type=int, default=2, help="sim drives at once (default: 2)")
+    loop.add_argument("--iterations", type=int, metavar="N",
+                      help="imitation into OUT/iter_0, then N × (world model → refinement → "
+                      "the policy drives and records) into OUT/iter_1..N")  # fmt: skip
+    loop.add_argument("--drive", choices=("car", "sim"), default="car",
+                      help="who drives each policy: car (the loop stops and says how; "
+                      "default) or sim (the simulator, in worker processes)")  # fmt: skip
+    loop.add_argument("--takeovers", action="store_true",
+                      help="take-over rounds: the driver takes over before a crash (sim: the "
+                      "scripted expert) and the next iteration re-imitates first")  # fmt: skip
+    loop.add_argument("--drive-tracks", default="1000-1009", metavar="SEEDS",
+                      help="sim: training placements to drive (default: %(default)s)")  # fmt: skip
+    loop.add_argument("--drive-layouts", default="hard", metavar="LIST",
+                      help="sim: layouts, taken in turn (default: %(default)s)")  # fmt: skip
+    loop.add_argument("--drive-seconds", type=float, default=60.0, metavar="S",
+                      help="sim: simulated s per placement (default: %(default)s)")  # fmt: skip
+    loop.add_argument("--jobs", type=int, default=2, help="sim: drives at once (default: 2)")
     a = p.parse_args(argv)
     cfg = config_from(a)
     if a.iterations is not None:
@@ -87,6 +104,10 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as exc:
         print(f"carrt-train: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("carrt-train: interrupted; run the same command to go on from there",
+              file=sys.stderr)  # fmt: skip
+        return 130
 
 
 def loop(a: argparse.Namespace, cfg: IterateConfig) -> int:
