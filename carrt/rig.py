@@ -1,13 +1,15 @@
 """What the control loop drives: the real car's parts, or the simulator's, as one `Rig`.
 
 The session builds a rig, hands its parts to the loop and calls `finish` at the end; it does not
-know which kind it has. The car's rig is here; the simulator's is `carrt/sim/rig.py`, which
-imports this module (and nothing imports back), so the two never form an import circle.
+know which kind it has. Which one is opened is a row of the table in carrt/rigs.py. The car's
+factory is here; the simulator's is `carrt/sim/rig.py`, which imports this module (and nothing
+imports back), so the two never form an import circle.
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -37,8 +39,29 @@ class Rig:
     simulated_time: bool = False
 
 
-def open_car_rig(stack: contextlib.ExitStack, config: Any) -> Rig:
-    """The real car: OpenCV camera, serial board, pygame pad; each checked before the next."""
+@dataclass(frozen=True)
+class RigKind:
+    """One row: a rig's name, what it is, and how to open it."""
+
+    name: str
+    summary: str  # for --help and the start-up line
+    factory: str  # "module:function"(stack, args, config, *, driving, kind) -> Rig
+    board: str | None = None  # simulator rigs: "module:Class" of the board behind the pty
+    simulator: bool = False  # the simulator's flags (--layout, --realtime, ...) apply
+    always_realtime: bool = False  # the board runs in wall-clock time only (an emulator)
+
+
+def load(reference: str) -> Any:
+    """Import a "module:attribute" reference now and return the attribute."""
+    module, _, attribute = reference.partition(":")
+    return getattr(importlib.import_module(module), attribute)
+
+
+def open_car_rig(
+    stack: contextlib.ExitStack, args: Any, config: Any, *, driving: bool, kind: Any
+) -> Rig:
+    """The real car: OpenCV camera, serial board, pygame pad; each checked before the next.
+    (A factory of carrt/rigs.py: the command line already went into `config`.)"""
     from carrt.camera import OpenCVCamera
     from carrt.joystick import PygameJoystick
 

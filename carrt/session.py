@@ -21,12 +21,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from carrt import __version__, layouts
+from carrt import __version__, layouts, rigs
 from carrt import config as car_config
 from carrt.arg_types import finite_non_negative
 from carrt.errors import UserError
 from carrt.progress import recording_bar
-from carrt.rig import open_car_rig
 from firmware_bridge.link import BoardLink, LinkError
 
 LOG = logging.getLogger(__name__)
@@ -48,9 +47,10 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "drive", help="let a policy drive; the joystick overrides and e-stops"
     )
     drive.add_argument(
-        "--model", required=True,
-        help="policy .onnx exported by `carrt-export`, or `demo` for the shipped policy",
-    )  # fmt: skip
+        "--model",  # required, checked in run_drive: one line, not argparse's usage block
+        help="the policy to drive (required): .onnx exported by `carrt-export`, or `demo` for "
+        "the shipped policy",
+    )
     drive.add_argument(
         "--autopilot",
         action="store_true",
@@ -107,8 +107,15 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
         "serves on localhost; another HOST, e.g. 0.0.0.0:8090, needs the token printed at "
         "start; the page can only e-stop)",
     )
+    parser.add_argument(
+        "--rig",
+        metavar="NAME",
+        help="what to drive, from carrt/rigs.py's table: "
+        + "; ".join(f"{k.name}: {k.summary}" for k in rigs.RIGS.values())
+        + " (default: car)",
+    )
     sim = parser.add_argument_group("simulator (no car needed)")
-    sim.add_argument("--sim", action="store_true", help="drive the built-in simulator")
+    sim.add_argument("--sim", action="store_true", help="drive the built-in simulator (--rig sim)")
     sim.add_argument(
         "--layout",
         default="easy",
@@ -119,14 +126,16 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
     sim.add_argument(
         "--board",
         choices=("virtual", "avr"),
-        help="the board behind the pty in real time: the C core built for this machine "
-        "(virtual, default) or the firmware binary on an emulated ATmega328P (avr; implies "
-        "--realtime, needs gcc-avr arduino-core-avr simavr libsimavr-dev)",
+        help="the simulator's board behind the pty in real time: the C core built for this "
+        "machine (virtual, default: --rig sim) or the firmware binary on an emulated ATmega328P "
+        "(avr: --rig avr; implies --realtime, needs gcc-avr arduino-core-avr simavr "
+        "libsimavr-dev)",
     )
     sim.add_argument(
         "--realtime",
         action="store_true",
-        help="run at wall-clock speed through the pty (default when a person drives)",
+        help="run at wall-clock speed through the pty (default when a person drives or "
+        "--view watches)",
     )
     sim.add_argument(
         "--episodes", type=int,
@@ -155,7 +164,8 @@ SIM_DEFAULTS = ("pwm.max_forward=1.0", "pwm.max_reverse=1.0")
 
 
 def load_config(args: argparse.Namespace) -> car_config.CarConfig:
-    overrides = [*(SIM_DEFAULTS if getattr(args, "sim", False) else ()), *args.set]
+    simulated = rigs.chosen(args).simulator
+    overrides = [*(SIM_DEFAULTS if simulated else ()), *args.set]
     for flag, key in (
         ("port", "serial.port"),
         ("camera", "camera.source"),
@@ -172,6 +182,11 @@ def run_teleop(args: argparse.Namespace) -> int:
 
 
 def run_drive(args: argparse.Namespace) -> int:
+    if args.model is None:
+        raise UserError(
+            "--model is required: a policy .onnx exported by carrt-export, or demo for the "
+            "shipped one (carrt drive --sim --model demo)"
+        )
     return _run(args, load_config(args), model_path=args.model)
 
 
@@ -205,12 +220,7 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
 
             view = ViewServer(args.view)  # binds now: a port in use ends here, car untouched
             stack.callback(view.close)
-        if getattr(args, "sim", False):
-            from carrt.sim.rig import open_sim_rig
-
-            rig = open_sim_rig(stack, args, config, driving=policy is not None)
-        else:
-            rig = open_car_rig(stack, config)
+        rig = rigs.open_rig(stack, args, config, driving=policy is not None)
         link = rig.link
         ack = link.send_config(car_config.board_config(config))
         if ack.result != 0:
@@ -244,7 +254,7 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             collisions=rig.collisions,
         )
         metadata = _episode_metadata(config, policy, link, "drive" if policy else "teleop")
-        if getattr(args, "sim", False):
+        if rigs.chosen(args).simulator:
             metadata["sim"] = {"layout": args.layout, "track_seed": args.track_seed}
         loop = ControlLoop(
             parts,

@@ -28,6 +28,8 @@ STEP_S = 0.01  # the plant follows the pulses at 100 Hz (they change at 50 Hz at
 class AvrBoard:
     """An emulated board plus a plant, stepped by a background thread."""
 
+    LABEL = "emulated ATmega328P running the firmware binary"  # carrt's start-up line
+
     def __init__(
         self,
         plant: Plant | None = None,

@@ -36,6 +36,8 @@ TICK_S = 0.001  # the core is ticked at about 1 kHz, like an Arduino loop()
 class VirtualBoard:
     """The C core, a plant and a pty, stepped by a background thread or by the caller."""
 
+    LABEL = "virtual board"  # how carrt's start-up line names it
+
     def __init__(
         self,
         plant: Plant | None = None,

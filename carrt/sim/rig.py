@@ -2,9 +2,10 @@
 
 Real time: the simulated car is the plant of the virtual board (the C core behind a pty), the
 camera renders on its own thread, and the real BoardLink talks over the pty — the full stack,
-only the physical world replaced. Simulated clock (the default when no person drives): the
-same loop, arbitration and C core, with the link in-process (DirectBoardLink) and time jumping
-ahead, so hours of driving take minutes.
+only the physical world replaced; the board is the row's (carrt/rigs.py: the virtual board, or
+the firmware on the emulated AVR). Simulated clock (the default when no person drives and no
+live view watches): the same loop, arbitration and C core, with the link in-process
+(DirectBoardLink) and time jumping ahead, so hours of driving take minutes.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from typing import Any
 
 from carrt.clock import SimClock, WallClock
 from carrt.interfaces import Mode
-from carrt.rig import Rig
+from carrt.rig import Rig, RigKind, load
 from carrt.sim.camera import SimCamera
 from carrt.sim.metrics import TrajectoryRecorder
 from carrt.sim.pilot import SimPilot
@@ -69,8 +70,8 @@ class SimRigConfig:
     layout: str = "easy"
     track_seed: int = 0
     seed: int = 0  # noise injection, the camera's phase, random starts
-    realtime: bool = False  # forced by a person driving
-    board: str = "virtual"  # "avr": the firmware binary on the emulated ATmega328P (real time)
+    realtime: bool = False  # forced by a person driving, a live view, or an emulated board
+    view: str | None = None  # --view: someone watches, so the simulator runs in real time
     expert: bool = False  # --expert auto: the scripted expert drives (teleop)
     autopilot: bool = False  # --autopilot: the policy drives and the pilot re-arms (drive)
     pad: bool = False  # a joystick instead of the keyboard window
@@ -96,8 +97,14 @@ class SimRigConfig:
 
 
 def open_sim_rig(
-    stack: contextlib.ExitStack, args: argparse.Namespace, config: Any, *, driving: bool
+    stack: contextlib.ExitStack,
+    args: argparse.Namespace,
+    config: Any,
+    *,
+    driving: bool,
+    kind: RigKind,
 ) -> Rig:
+    """The simulator as a rig (a factory of carrt/rigs.py), with `kind.board` as its board."""
     from carrt.sim.expert import ScriptedExpert
     from carrt.sim.render import Renderer
     from carrt.sim.world import SimWorld
@@ -110,22 +117,14 @@ def open_sim_rig(
         from carrt.sim.keyboard import require_display
 
         require_display()  # before anything starts: a window nobody can see drives nothing
-    realtime = sim.realtime or not scripted or sim.board == "avr"
+    # a person at the keys, or watching the live view, needs the car at the speed of life
+    realtime = sim.realtime or not scripted or sim.view is not None or kind.always_realtime
     if realtime:
         clock: Any = WallClock()
-        if sim.board == "avr":
-            from firmware_bridge.avr_board import AvrBoard
-
-            board: Any = AvrBoard(plant).start()
-            kind = "emulated ATmega328P running the firmware binary"
-        else:
-            from firmware_bridge.virtual import VirtualBoard
-
-            board = VirtualBoard(plant).start()
-            kind = "virtual board"
+        board = load(kind.board)(plant).start()
         stack.callback(board.stop)
         link = BoardLink(board.port).open()
-        where = f"in real time, {kind} on {board.port}"
+        where = f"in real time, {getattr(board, 'LABEL', kind.name)} on {board.port}"
     else:
         from firmware_bridge.direct import DirectBoardLink
 
