@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from carrt.config import CameraConfig, EncoderConfig
@@ -34,6 +34,16 @@ from firmware_bridge.timing import BOARD_GRACE_S
 """How long the board may lag a clear or an arm before the host stops waiting for it."""
 
 DEFAULT_ESTOP_WHY = "joystick: e-stop button pressed or pad removed"
+
+
+def arm_hint(controls: Mapping[str, str], allow_auto: bool) -> str:
+    """What a parked car tells its driver, naming the keys of the device in hand (`controls`,
+    role → key or button name: the joystick's own `controls`; the role where it has none)."""
+    arm = controls.get("arm", "the arm button")
+    hint = f"not armed yet: press {arm} to arm (sticks at neutral)"
+    if allow_auto:
+        hint += f", then {controls.get('auto', 'the auto button')} for AUTO"
+    return hint
 
 
 @dataclass(frozen=True)
@@ -103,6 +113,7 @@ class Arbiter:
         encoder: EncoderConfig,
         deadzone: float = 0.0,
         on_estop: Callable[[], None] | None = None,
+        controls: Mapping[str, str] | None = None,
     ) -> None:
         self.allow_auto = allow_auto
         self.max_frame_age_s = camera.max_age_s
@@ -111,7 +122,7 @@ class Arbiter:
         self._on_estop = on_estop
         self._lock = threading.Lock()
         self._mode = Mode.DISARMED
-        self._why = "not armed yet: press arm with the sticks at neutral"
+        self._why = arm_hint(controls or {}, allow_auto)
         self._estop_reason = ""
         self._estop_edge = False
         self._interventions = 0

@@ -107,6 +107,28 @@ _EDGES = {"arm": "arm", "auto": "toggle_auto", "record": "toggle_record", "lap":
           "clear": "clear"}  # fmt: skip
 
 
+# What each raw button index is labelled on the pad, for the hints that name a button ("press
+# Start to arm"); the table in the docstring. `custom` has none: its buttons are "button N".
+_XINPUT_NAMES = {0: "A", 1: "B", 2: "X", 3: "Y", 4: "LB", 5: "RB", 6: "Back", 7: "Start",
+                 8: "Guide", 9: "L3", 10: "R3"}  # fmt: skip
+BUTTON_NAMES: dict[str, dict[int, str]] = {
+    "xbox": _XINPUT_NAMES,
+    "f710": _XINPUT_NAMES,
+    "ps4": {0: "cross", 1: "circle", 2: "triangle", 3: "square", 4: "L1", 5: "R1", 6: "L2",
+            7: "R2", 8: "Share", 9: "Options", 10: "PS", 11: "L3", 12: "R3"},
+}  # fmt: skip
+
+
+def button_names(preset: str, layout: Layout) -> dict[str, str]:
+    """Role -> the label of its button on this pad (overrides included), roles with a button."""
+    names = BUTTON_NAMES.get(preset, {})
+    return {
+        role: names.get(index, f"button {index}")
+        for role in ("arm", "auto", "clear", "estop", "record", "lap")
+        if (index := getattr(layout, role)) >= 0
+    }
+
+
 def layout_for(config: JoystickConfig) -> Layout:
     """The preset's layout with every config field >= 0 overriding it."""
     if config.preset not in PRESETS:
@@ -131,6 +153,7 @@ class PygameJoystick:
     def __init__(self, config: JoystickConfig) -> None:
         self.config = config
         self.layout = layout_for(config)
+        self.controls = button_names(config.preset, self.layout)  # for the loop's hints
         self._axes = (self.layout.steering_axis, self.layout.throttle_axis)
         self._lock = threading.Lock()
         self._stop = threading.Event()

@@ -135,6 +135,8 @@ class ControlLoop:
             encoder=config.encoder,
             deadzone=0.0,  # the pad driver already zeroes sticks inside its deadzone
             on_estop=parts.link.estop,
+            # the keys to name in "not armed yet: press ..." (keyboard, pad preset)
+            controls=getattr(parts.joystick, "controls", None),
         )
         self.speed = SpeedEstimator(config.encoder.metres_per_tick, config.encoder.speed_window_s)
         self.plans = PlanBuffer()

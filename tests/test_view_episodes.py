@@ -99,7 +99,30 @@ def test_view_of_something_that_is_no_episode_is_one_line_and_exit_2(tmp_path):
 
     from view_rig import ROOT
 
-    done = subprocess.run([sys.executable, "-m", "carrt", "episodes", "view", str(tmp_path)],
-                          capture_output=True, text=True, cwd=ROOT, timeout=60)  # fmt: skip
-    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
-    assert "not a carrt episode" in done.stderr
+    (tmp_path / "notes.txt").write_text("not an episode")
+    for path, words in (
+        (tmp_path, "no episodes in"),
+        (tmp_path / "notes.txt", "not a carrt episode"),
+    ):
+        done = subprocess.run([sys.executable, "-m", "carrt", "episodes", "view", str(path)],
+                              capture_output=True, text=True, cwd=ROOT, timeout=60)  # fmt: skip
+        assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+        assert words in done.stderr, done.stderr
+
+
+def test_a_folder_of_episodes_is_viewed_as_ls_lists_it(tmp_path):
+    """`carrt episodes ls DIR` takes a folder of episodes: so does view, in ls's order, and
+    folders and single episodes mix in the order given."""
+    run = tmp_path / "run"
+    first = write_episode(run, [make_step(i) for i in range(20)])
+    second = write_episode(run, [make_step(i, seed=1, mode=Mode.AUTO) for i in range(30)])
+    assert sorted([first.name, second.name]) == [first.name, second.name], "ls's order"
+    extra = write_episode(tmp_path / "later", [make_step(i) for i in range(5)])
+    argv = ["episodes", "view", str(run), str(extra), "--view", "0"]
+    with carrt_with_view(argv, tmp_path) as served:
+        timeline = json.loads(request(f"{served.base}/episodes.json")[1])
+        assert timeline["total"] == 20 + 30 + 5
+        assert "3 episode(s), 55 steps" in "\n".join(served.lines)
+        for k, episode in ((19, first), (20, second), (50, extra)):
+            status, body = request(f"{served.base}/step.json?k={k}")
+            assert status == 200 and json.loads(body)["episode"] == episode.name, (k, body)

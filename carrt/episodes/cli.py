@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from carrt.episodes.reader import list_episodes, read_episode
+from carrt.episodes.reader import in_order, list_episodes, read_episode
 from carrt.errors import UserError
 
 # carrt.episodes.contact_sheet imports OpenCV, which every `carrt` command would pay for at start-up
@@ -40,7 +40,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "person's, the policy's and the executed actions and the plan's mu over H drawn beside.",
         epilog="example: carrt episodes video episodes/20261123-* -o run.mp4",
     )
-    video.add_argument("episode", metavar="EP", nargs="+", help="episode directories, in order")
+    video.add_argument(
+        "episode", metavar="EP", nargs="+", help="episodes, in order, or folders of them"
+    )
     out = video.add_mutually_exclusive_group(required=True)
     out.add_argument(
         "-o", "--output", metavar="OUT", help="video file: .mp4 (H.264) or .avi (MJPG)"
@@ -58,7 +60,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "(the person's), the policy's and the executed action, the plan's mu +- sigma, speed, "
         "mode, flags, collision labels and lap marks, on a timeline of the whole run.",
     )
-    view.add_argument("episode", metavar="EP", nargs="+", help="episode directories, in order")
+    view.add_argument(
+        "episode", metavar="EP", nargs="+", help="episodes, in order, or folders of them"
+    )
     view.add_argument(
         "--view",
         metavar="[HOST:]PORT",
@@ -121,7 +125,7 @@ def run_video(args: argparse.Namespace) -> int:
     from carrt.episodes.contact_sheet import render_contact_sheet
     from carrt.episodes.video import render_video
 
-    episodes = [read_episode(path) for path in args.episode]
+    episodes = [read_episode(path) for path in in_order(args.episode)]
     if args.sheet:
         if len(episodes) != 1:
             raise UserError("--sheet takes one episode")

@@ -232,6 +232,12 @@ def list_episodes(root_or_paths: str | os.PathLike | Iterable[str | os.PathLike]
     return sorted(found, key=lambda p: (p.name, str(p)))
 
 
+def in_order(paths: Iterable[str | os.PathLike]) -> list[Path]:
+    """Episodes in the order given, each folder of episodes expanded in place (by name, as
+    `list_episodes` does): the commands that play episodes in sequence take what `ls` takes."""
+    return [episode for path in paths for episode in list_episodes(path)]
+
+
 def iter_episodes(root_or_paths: Any, *, verify_all: bool = False) -> Iterable[Episode]:
     for path in list_episodes(root_or_paths):
         yield read_episode(path, verify_all=verify_all)

@@ -46,6 +46,8 @@ LEGEND = (
     "arrows/WASD drive   Enter arm/disarm   Tab manual/auto   Space E-STOP   C clear",
     "Backspace car back on track   R record   L lap   F12 screenshot   Esc quit",
 )
+# role -> key, for the loop's hints ("press Enter to arm"); the keys _handle maps
+CONTROLS = {"arm": "Enter", "auto": "Tab", "clear": "C", "estop": "Space"}
 
 
 def require_display() -> None:
@@ -62,6 +64,8 @@ def require_display() -> None:
 
 
 class KeyboardPad:
+    controls = CONTROLS
+
     def __init__(
         self,
         plant: Any,

@@ -171,18 +171,30 @@ def run_metrics(track: Track, trajectory, *, n_laps: int = 5) -> SimMetrics:
 
 def format_metrics(m: SimMetrics) -> str:
     """The run's numbers as a short human-readable block."""
-    laps = ", ".join(f"{t:.2f}" for t in m.lap_times) or "none"
     timed = f"{m.time_for_laps:.1f} s" if m.time_for_laps is not None else "not reached"
     return "\n".join(
         [
             f"average speed    {m.average_speed:.2f} m/s (top {m.top_speed:.2f} m/s)",
             f"completion ratio {m.completion_ratio:.3f}",
-            f"laps             {m.laps} (clean lap times, s: {laps})",
+            f"laps             {m.laps}{_clean_laps(m)}",
             f"collisions       {m.collisions}, interventions {m.interventions}",
             f"time for laps    {timed} (resets excluded)",
             f"distance         {m.distance:.1f} m in {m.driving_time:.1f} s of driving",
         ]
     )
+
+
+def _clean_laps(m: SimMetrics) -> str:
+    """The lap times, which are those of clean laps only (no collision, take-over or reset
+    inside the lap): said so that "laps 3" beside no times does not read as a contradiction."""
+    if m.lap_times:
+        times = ", ".join(f"{t:.2f}" for t in m.lap_times)
+        if len(m.lap_times) >= m.laps:
+            return f" (all clean, lap times {times} s)"
+        return f" ({len(m.lap_times)} clean, without a collision or take-over: {times} s)"
+    if m.laps:
+        return " (no clean lap: every lap had a collision or take-over)"
+    return ""
 
 
 def plot_trajectory(

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from carrt.episodes.format import FLAGS
-from carrt.episodes.reader import Episode, read_episode
+from carrt.episodes.reader import Episode, in_order, read_episode
 from carrt.interfaces import Mode
 from carrt.view.server import Response, Route, ViewServer, json_response, page
 
@@ -122,7 +122,8 @@ class EpisodeFeed:
 
 def run_view(args: argparse.Namespace) -> int:
     """Serve until Ctrl-C (or SIGTERM); exits 0."""
-    episodes = [read_episode(path) for path in args.episode]  # errors before binding
+    # errors before binding; a folder of episodes is taken as `carrt episodes ls` takes it
+    episodes = [read_episode(path) for path in in_order(args.episode)]
     server = ViewServer(args.view)
     server.serve(EpisodeFeed(episodes).routes())
     total = sum(ep.n for ep in episodes)
