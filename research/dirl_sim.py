@@ -20,12 +20,12 @@ Top to bottom, every step one of the project's own commands (logged under OUT/lo
    policy itself reached); the episodes join the data. iterate.py --init first trains the
    previous policy further by imitation on every labelled frame (`reimitate`, the take-overs
    included), continues the world model on all of it, refines the policy in imagination
-   and scores the world model against the simulator (training/counterfactual.py, placements
+   and scores the world model against the simulator (research/variants/counterfactual.py, placements
    200-204, never the evaluation ones). Refinement keeps a candidate every 100 steps; each, the
    policy imitation made and the policy the iteration started from are driven on validation
    placements (200-219, 220-239, 240-259 for iterations 1-3); the policy imitation made is kept
    unless a candidate beats it by two standard errors of the paired difference
-   (training/select_by_driving.py; select_by_driving=false: the last step's). The policy
+   (research/variants/select_by_driving.py; select_by_driving=false: the last step's). The policy
    imitation made is also evaluated as its own row ("before refinement"): what refinement adds
    beyond the take-overs.
    takeover_seconds=0 reimitate_steps=0 is the paper's iteration (imitation once, drives

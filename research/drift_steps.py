@@ -1,5 +1,5 @@
 """Where refinement moved the plan, as steps of a check (research/takeover_check.py): the drift of
-every refined policy (training/refine_drift.py) and the ensemble members whose spread it
+every refined policy (research/variants/refine_drift.py) and the ensemble members whose spread it
 reports beside the evidential uncertainty.
 
 Why a check needs it: -unc ended level with DIRL in every setting measured (research/LOG.md,
@@ -40,8 +40,9 @@ def member_runs(step: StudyStep, tag: str, world: Path, seed: int, count: int,
 
 
 def drift(step: StudyStep, tag: str, run: Path, start: Path, members: list[Path]) -> None:
-    """carrt-refine-drift of the refined `run` against `start` (the run refinement started
-    from: its policy, and its counterfactual set's frames) into RUN/drift.json."""
+    """research.variants.refine_drift of the refined `run` against `start` (the run
+    refinement started from: its policy, and its counterfactual set's frames) into
+    RUN/drift.json."""
     argv = py(str(ROOT / "research/variants/refine_drift.py"), "--run", str(run),
               "--start", str(start),
               "--json", str(run / "drift.json"))  # fmt: skip

@@ -10,7 +10,7 @@ imitation (research/dirl_sim.py, its settings and its commands): demonstrations,
 iteration's drives (exploration noise, every crash labelled) and take-overs, the previous
 policy imitating again on every labelled frame ("imitated", the policy the study's selection
 keeps unless refinement beats it). Then, from imitated, `refine_outcomes`
-(training/refine_outcomes.py) in two arms with everything else equal:
+(research/variants/refine_outcomes.py) in two arms with everything else equal:
 
 - "outcomes": the executed actions of the drives weighted by their advantage (real return over
   a cross-fitted ridge baseline on the policy's features);

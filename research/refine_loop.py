@@ -27,7 +27,7 @@ that and nothing else, with nothing chosen by driving:
 Rows: "IL", "loop<k>", "loop<K>-unc" and "IL-equal-loop<K>" (IL on the demonstrations topped up
 from the same σ's second pool to the last loop's recorded frames, the drives included: what a
 real car records counts). Each loop row carries its world model's counterfactual check
-(`carrt-counterfactual`'s AUROC and ρ on the held-out placements). The results go to
+(research.variants.counterfactual's AUROC and ρ on the held-out placements). The results go to
 OUT/results-loop<suffix>-noise<σs>.json and table-…md, the plot of completion against frames
 beside them.
 
@@ -235,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     figure = out / f"completion_vs_frames-{name}.png"
     plot(rows, figure, "IL and refinement with the loop closed, mean ± std over seeds")
     text = write_results(cfg, rows, started, f"-{name}", lambda mine: pairs(cfg) if mine else [])
-    text += "\n\nEach loop's world model (carrt-counterfactual, held-out placements):\n\n"
+    text += "\n\nEach loop's world model (the counterfactual check, held-out placements):\n\n"
     text += world_table(rows)
     (out / f"table-{name}.md").write_text(text + "\n")
     print("\n" + text + f"\n\nwritten: {out}/results-{name}.json, table-{name}.md, {figure}")

@@ -94,8 +94,8 @@ class StudyConfig:
     # collision term ~10x its weight. False: the paper's form (raw p̂).
     collision_prior_correction: bool = True
     # Refinement by search in the world model's imagination instead of its gradient
-    # (training/refine_search.py): μ pulled toward the imagined-best of fixed alternatives where
-    # it beats the plan by the margin. False: the paper's gradient.
+    # (research/variants/refine_search.py): μ pulled toward the imagined-best of fixed
+    # alternatives where it beats the plan by the margin. False: the paper's gradient.
     refine_search: bool = True
     refine_search_margin: float = 0.0
     # With refine_search: the first DIRL iteration refined by search, the ones before it by the
@@ -111,7 +111,8 @@ class StudyConfig:
     unc_every_iteration: bool = True
     # The third safeguard: refinement keeps a candidate every `refine_candidates_every` steps and
     # the policy it started from is one too; each is driven on validation placements and the best
-    # is the iteration's policy (training/select_by_driving.py). False: the last step's policy.
+    # is the iteration's policy (research/variants/select_by_driving.py). False: the last
+    # step's policy.
     select_by_driving: bool = True
     refine_candidates_every: int = 100
     # Validation placements (neither trained on nor evaluated): entry k−1 for iteration k, one
@@ -120,7 +121,7 @@ class StudyConfig:
     select_tracks: tuple[str, ...] = ("200-219", "220-239", "240-259")
     # The policy imitation made ("imitated", with reimitate; else the start) is kept unless a
     # candidate beats it by this many standard errors of the paired per-placement score
-    # (training/select_by_driving.py). 0: the best score, the rule of the studies until
+    # (research/variants/select_by_driving.py). 0: the best score, the rule of the studies until
     # 2026-11-24's seventh run.
     select_margin_z: float = 2.0
     select_seconds: float = 30.0  # simulated s per validation placement and candidate

@@ -48,7 +48,7 @@ form (no safeguards) ± unc, `refine_in_demos` a world model of the demonstratio
 model that also learns the last
 policy's exploration drives, `refine_crashes_only` one more on those frames without the
 take-over labels; `refine_drift` asks of every refined policy how far refinement moved its
-plan and whether the world model's uncertainty rose there (carrt-refine-drift), and
+plan and whether the world model's uncertainty rose there (research.variants.refine_drift), and
 `drift_members=K` trains K more crash-only world models from their own initialisations whose
 spread (a deep ensemble's uncertainty) the crash-only rows' drift reports too
 (research/drift_steps.py); `paper_corrected_in=drives-only,…` adds, in the world models it names,
@@ -330,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
     text = write_results(cfg, rows, started, f"-{name}", pairs_of)
     moves = drift_table(rows)
     if moves:
-        text += "\n\nWhere refinement moved the plan (carrt-refine-drift):\n\n" + moves
+        text += "\n\nWhere refinement moved the plan (research.variants.refine_drift):\n\n" + moves
         (out / f"table-{name}.md").write_text(text + "\n")
     print("\n" + text + f"\n\nwritten: {out}/results-{name}.json, table-{name}.md, {figure}")
     return 0

@@ -56,8 +56,8 @@ class TakeoverConfig:
     # (takeovers_as_collisions false: measured, the take-over labels taught the others that
     # speed collides) and the same refinements in it
     refine_crashes_only: bool = False
-    # with refine: carrt-refine-drift on every refined policy (how far refinement moved the plan
-    # and whether the world model's uncertainty rose there; RUN/drift.json, a table)
+    # with refine: research.variants.refine_drift on every refined policy (how far refinement
+    # moved the plan and whether the world model's uncertainty rose there; RUN/drift.json, a table)
     refine_drift: bool = False
     # with refine_crashes_only: placements the last round's policy also drives with exploration
     # noise (drive_seconds each) for two more world models, crash labels only: on every frame

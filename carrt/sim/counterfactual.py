@@ -6,7 +6,7 @@
 Refinement trusts the world model's answer to "what if the car did this instead?". Nothing in
 the recorded episodes can check that answer, because a real car lives each moment once. The
 simulator can: from one start state it replays several action sequences open-loop and records
-what each one really did. `training/counterfactual.py` then asks the world model the same
+what each one really did. `research/variants/counterfactual.py` then asks the world model the same
 questions and scores it (collision AUROC across sequences from one start, speed error, rank
 correlation of the refinement objective). Evaluation only: nothing here is a training input.
 
