@@ -9,6 +9,7 @@ must parse (every `--set` a real field), and every results file a claim names mu
 
 from __future__ import annotations
 
+import json
 import re
 import shlex
 import subprocess
@@ -147,3 +148,25 @@ def test_a_wrong_setting_is_refused():
     with pytest.raises(SystemExit) as exc:
         read_sets(["--set", "roundz=3"], TakeoverConfig(), "research.takeover_check", "d", "T")
     assert exc.value.code == 2
+
+
+def test_the_shipped_policy_drives_as_recorded(tmp_path):
+    """The shipped-policy claim's `carrt eval` command, on the one run of its ten that crashed
+    (placement 103, seed 0; the whole command takes about a minute): the same laps, collisions
+    and distance as its results file recorded."""
+    (row,) = [
+        r for r in ROWS if any(c.startswith("carrt eval --model demo") for c in r["commands"])
+    ]
+    (command,) = [c for c in row["commands"] if c.startswith("carrt eval --model demo")]
+    argv = shlex.split(command)[2:]
+    argv[argv.index("--tracks") + 1], argv[argv.index("--seeds") + 1] = "103", "0"
+    argv[argv.index("--json") + 1] = str(tmp_path / "eval.json")
+    out = subprocess.run([sys.executable, "-m", "carrt", "eval", *argv], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    (mine,) = json.loads((tmp_path / "eval.json").read_text())["runs"]
+    recorded = json.loads((RESULTS / "demo_policy_eval.json").read_text())["runs"]
+    (theirs,) = [r for r in recorded if (r["track"], r["seed"]) == (103, 0)]
+    assert theirs["collisions"] >= 1  # the run that tells a policy apart
+    for key in ("completion_ratio", "collisions", "laps", "distance", "average_speed"):
+        assert mine[key] == pytest.approx(theirs[key], rel=1e-9), key
