@@ -91,6 +91,13 @@ def test_iteration_writes_policy_report_figures_and_onnx(iteration1, sim_episode
         assert m["collision_auroc"] is None  # NaN is written as null
     assert record["stages"]["imitation"]["steps"] == 6
     assert record["data"]["episodes"] == 7
+    # the export ran as carrt-export's process; its report is in metrics.json and report.md
+    import hashlib
+
+    assert (
+        record["export"]["sha256"] == hashlib.sha256((out / "policy.onnx").read_bytes()).hexdigest()
+    )
+    assert f"wrote {out / 'policy.onnx'}" in report and "parity" in report
 
     from carrt.policy import OnnxPolicy
 
@@ -328,3 +335,16 @@ def test_script_mode_reports_bad_input_in_one_line(tmp_path):
     assert proc.stderr.strip().splitlines() == [
         "carrt-train: error: unknown profile 'nope'; choose one of tiny, cpu, paper"
     ]
+
+
+def test_a_refused_export_fails_the_run_in_one_report_line(sim_episodes, tmp_path, capsys):
+    """The export runs as a process (training/ never imports export/); its refusal is the
+    run's exit status 1, policy.pt kept, the reason in the report."""
+    out = tmp_path / "refused"
+    argv = ["--episodes", str(sim_episodes), "--out", str(out), *SMALL, *steps(2, 0, 0),
+            "--set", "figures=false"]  # fmt: skip
+    (out / "policy.onnx").mkdir(parents=True)  # a directory where the file must go
+    assert main(argv) == 1
+    said = capsys.readouterr().out
+    assert "export FAILED: " in said and (out / "policy.pt").is_file()
+    assert "export FAILED: " in (out / "report.md").read_text()
