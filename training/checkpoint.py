@@ -1,6 +1,6 @@
 """Checkpoints: one torch.save'd dict that holds everything needed to resume or export a run.
 
-A checkpoint is the unit of trust between the stages, iterate.py's resume, and export/: the
+A checkpoint is the unit of trust between the stages, iteration.py's resume, and export/: the
 config that produced it, the weights, the optimiser state, the step, and the data it was
 trained on (digest + episode list), so a later iteration or an exported ONNX file can say where
 it came from. Writes are atomic (tmp file + os.replace): a run killed mid-write leaves the

@@ -164,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
         run(imitation(py, data, policy_dir, a, a.final_steps), policy_dir / ".done")
     if a.sloppy_world:
         policy_dir = sloppy_world_refinement(py, data, policy_dir, work, a)
-    # iterate.py exported the policy through export.export_policy (parity with PyTorch on
+    # carrt-train exported the policy through carrt-export (parity with PyTorch on
     # recorded frames checked). No int8 variant: export refused it for this policy (μ error
     # max 0.48 against fp32 on held-out frames, bound 0.2), so the float file ships.
     out = Path(a.out)

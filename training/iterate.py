@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 from pathlib import Path
 
@@ -88,6 +89,8 @@ def parse(argv: list[str] | None) -> tuple[argparse.Namespace, IterateConfig]:
                              "--world-episodes")  # fmt: skip
         if not cfg.export:
             raise UsageError("--iterations drives the exported policy: export must stay on")
+        if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+            raise UsageError("the loop runs in one process: torchrun one iteration at a time")
     return a, cfg
 
 

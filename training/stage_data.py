@@ -1,7 +1,7 @@
 """The data one iteration reads: the episodes split by placement, and the datasets every stage
 trains on, over frames decoded once into RAM (data.FrameStore).
 
-Split from iterate.py so that file reads as the run, top to bottom. The world model may learn
+Split from iteration.py so that file reads as the run, top to bottom. The world model may learn
 other episodes than the policy imitates and is refined on (--world-episodes, WorldEpisodes):
 refinement always starts from the policy's own windows, the states it is refined in.
 """
