@@ -14,6 +14,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import os
 import subprocess
 import sys
 import tempfile
@@ -39,12 +40,17 @@ def _export(cfg, out: Path) -> tuple[list[str], dict | None, int]:
     for module in ("export", "onnx"):
         if importlib.util.find_spec(module) is None:
             return [f"export skipped: {module} is not available"], None, 0
+    # the child finds export/ where this process does (a checkout run as a script, too)
+    root = str(Path(importlib.util.find_spec("export").origin).parents[1])
+    paths = [root, *filter(None, [os.environ.get("PYTHONPATH")])]
     with tempfile.TemporaryDirectory() as tmp:
         info = Path(tmp) / "export.json"
         argv = [sys.executable, "-m", "export", str(out / "policy.pt"), "-o",
                 str(out / "policy.onnx"), "--episodes", *cfg.episodes,
                 "--json-out", str(info)]  # fmt: skip
-        done = subprocess.run(argv, capture_output=True, text=True)
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
+        env |= {"OMP_NUM_THREADS": str(cfg.threads)} if cfg.threads else {}
+        done = subprocess.run(argv, capture_output=True, text=True, env=env)
         if done.returncode != 0 or not info.is_file():  # refused or failed: policy.pt is intact
             why = (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1]
             return [f"export FAILED: {' '.join(why.split())}"], None, 1
