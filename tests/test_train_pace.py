@@ -70,3 +70,30 @@ def test_a_run_of_another_batch_size_or_an_unreadable_cache_expects_nothing(tmp_
     p, lines = pace(tmp_path, Clock())
     p.announce("cpu", [("imitation", 100, 128)])
     assert "has not run them yet" in lines[0]
+
+
+def test_carrt_train_measures_a_stage_and_the_next_run_says_its_duration_up_front(
+    sim_episodes, tmp_path, monkeypatch, capsys
+):
+    import torch
+
+    from training.iteration import main
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    steps = WARMUP + MEASURE + 2
+    argv = ["--episodes", str(sim_episodes), "--profile", "tiny", "--set", "threads=1",
+            "--set", "imitation_batch_size=8", "--set", f"imitation_steps={steps}",
+            "--set", "world_model_steps=0", "--set", "refine_steps=0", "--set", "export=false",
+            "--set", "figures=false", "--set", "eval_windows=32"]  # fmt: skip
+    before = torch.get_num_threads()
+    try:
+        assert main([*argv, "--out", str(tmp_path / "first")]) == 0
+        first = capsys.readouterr().err
+        assert "has not run them yet" in first
+        assert "carrt-train: imitation: expected ~" in first and f"({steps} steps at" in first
+        assert main([*argv, "--out", str(tmp_path / "second")]) == 0
+        second = capsys.readouterr().err
+        assert f"carrt-train: imitation {steps} steps: expected ~" in second
+        assert "on this machine (its step rates measured before)" in second
+    finally:
+        torch.set_num_threads(before)
