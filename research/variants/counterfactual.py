@@ -369,7 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m research.variants.counterfactual", description=__doc__
     )
-    p.add_argument("--run", required=True, help="iterate.py run directory (world_model.pt)")
+    p.add_argument("--run", required=True, help="carrt-train run directory (world_model.pt)")
     p.add_argument("--data", help="counterfactual .npz (default: generate RUN/counterfactual.npz)")
     p.add_argument("--layout", default="hard")
     p.add_argument("--tracks", default="200-204", help="held-out placements (not 100-199)")

@@ -234,8 +234,8 @@ def train_refine_outcomes(
 
 
 def refine_by_outcomes(cfg: IterateConfig, policy, data, ctx: RunContext, resume, demonstrations):
-    """iterate.py's refine stage with `refine_outcomes`: the drives' windows of the training
-    episodes (data: stage_data.StageData), their weights computed once under the policy the stage
+    """The refinement stage with `refine_outcomes` (research/variants/train.py): the drives'
+    windows of the training episodes (data: stage_data.StageData), their weights computed once under the policy the stage
     starts from and kept in OUT/outcome_weights.npy (a resumed run reads them back, since the
     policy it loads has already moved), the diagnostics in OUT/outcomes.json."""
     import json
