@@ -235,9 +235,10 @@ def train_refine_outcomes(
 
 def refine_by_outcomes(cfg: IterateConfig, policy, data, ctx: RunContext, resume, demonstrations):
     """The refinement stage with `refine_outcomes` (research/variants/train.py): the drives'
-    windows of the training episodes (data: stage_data.StageData), their weights computed once under the policy the stage
-    starts from and kept in OUT/outcome_weights.npy (a resumed run reads them back, since the
-    policy it loads has already moved), the diagnostics in OUT/outcomes.json."""
+    windows of the training episodes (data: stage_data.StageData), their weights computed once
+    under the policy the stage starts from and kept in OUT/outcome_weights.npy (a resumed run
+    reads them back, since the policy it loads has already moved), the diagnostics in
+    OUT/outcomes.json."""
     import json
     from pathlib import Path
 
