@@ -50,10 +50,20 @@ def test_every_docs_page_is_in_the_nav():
     )
 
 
+def headings(page: Path) -> set[str]:
+    """The anchors MkDocs gives a page's headings (Python-Markdown's toc slugs)."""
+    from markdown.extensions.toc import slugify
+
+    text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)
+    return {slugify(h, "-") for h in re.findall(r"^#+\s+(.+?)\s*$", text, flags=re.M)}
+
+
 def test_readme_is_short_and_its_links_resolve():
     text = (ROOT / "README.md").read_text()
     assert len(text.splitlines()) <= README_MAX_LINES
-    for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text):
+    for target, anchor in re.findall(r"\]\(([^)#\s]+)(?:#([^)]*))?\)", text):
         if "://" in target:
             continue
         assert (ROOT / target).exists(), f"README links to {target}, which is not in the tree"
+        if anchor:
+            assert anchor in headings(ROOT / target), f"README links to {target}#{anchor}"
