@@ -4,10 +4,11 @@ Each stage runs through the same loop iterate.py uses (batches gathered from one
 episodes the real stack records in the simulator, Adam, gradient clipping), with the profile's
 preset batch sizes, after a few warm-up steps, at 1 torch thread and at torch's default thread
 count (on a small machine shared with other work, extra intra-op threads can cost more than they
-give). Also timed: get_batch alone, the data ceiling of every stage; refinement by search
-(refine_search) beside the gradient's; and the search's imagination with each start frame
-encoded once against K copies of it. The cpu profile's figures are compared with BASELINE,
-measured before the training-speed work of issue 13.
+give). Also timed: get_batch alone, the data ceiling of every stage; and the world model's
+imagination of K action sequences per start frame with the frame encoded once against K copies
+of it. (Refinement by search is a research variant: research/variants/refine_search.py.) The
+cpu profile's figures are compared with BASELINE, measured before the training-speed work of
+issue 13.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 PROFILES = ("tiny", "cpu")
 STEPS = {"tiny": 20, "cpu": 12}
 WARMUP = 2
-STAGES = ("imitation", "world_model", "refine", "refine_search")
+STAGES = ("imitation", "world_model", "refine")
 # Samples/s of the cpu profile before issue 13's speed work (2026-11-22, this 2-core machine,
 # 2 torch threads, same sim episodes): width 24 at 96×96, 32×32 futures, a DataLoader reading
 # memory maps and resizing 10 future frames per window, imitation included.
@@ -48,8 +49,7 @@ def _stage(name, cfg, policy, world_model, windows, free, norm):
     if name == "world_model":
         return train_world_model(cfg, world_model, windows, norm, collision_weight=5.0)
     world_model.unfreeze()
-    searching = dataclasses.replace(cfg, refine_search=name == "refine_search")
-    return train_refine(searching, policy, world_model, windows, norm)
+    return train_refine(cfg, policy, world_model, windows, norm)
 
 
 def profile_throughput(profile: str, episodes) -> dict:
@@ -85,10 +85,9 @@ def profile_throughput(profile: str, episodes) -> dict:
         "data_windows_per_s": data_rate,
     }
     for stage in STAGES:
-        prefix = "refine" if stage.startswith("refine") else stage
-        batch = getattr(cfg, f"{prefix}_batch_size")
+        batch = getattr(cfg, f"{stage}_batch_size")
         for steps in (WARMUP, STEPS[profile]):
-            run = dataclasses.replace(cfg, **{f"{prefix}_steps": steps})
+            run = dataclasses.replace(cfg, **{f"{stage}_steps": steps})
             result = _stage(stage, run, policy, world_model, windows, free, norm)
         out[stage] = {
             "batch_size": batch,
@@ -101,7 +100,7 @@ def profile_throughput(profile: str, episodes) -> dict:
 
 
 def imagine_shared_over_copies(k: int = 8, starts: int = 32, repeats: int = 6) -> dict:
-    """The search's imagination (cpu profile, 1 thread, no gradient): K sequences per start
+    """Imagination (cpu profile, 1 thread, no gradient): K sequences per start
     frame with the frame encoded once (WorldModel.forward) against K copies of the frame, timed
     alternately; the median of `repeats` each."""
     import torch
@@ -177,12 +176,8 @@ def run() -> dict:
         ratio = best["tiny"][stage]["samples_per_s"] / best["cpu"][stage]["samples_per_s"]
         result[f"ratio_tiny_over_cpu_{stage}_1_thread"] = ratio
         print(f"   {stage}: tiny runs {ratio:.1f}x the samples/s of cpu (1 thread)")
-    cpu_1 = best["cpu"]
-    ratio = cpu_1["refine"]["samples_per_s"] / cpu_1["refine_search"]["samples_per_s"]
-    result["ratio_refine_gradient_over_search_cpu_1_thread"] = ratio
-    print(f"   cpu, 1 thread: gradient refinement runs {ratio:.1f}x the start frames/s of search")
-    shared = result["imagine_search"] = imagine_shared_over_copies()
-    print(f"   the search's imagination ({shared['starts']} starts x {shared['k']} sequences, cpu, "
+    shared = result["imagine_shared"] = imagine_shared_over_copies()
+    print(f"   imagination ({shared['starts']} starts x {shared['k']} sequences, cpu, "
           f"1 thread): {shared['shared_s']:.2f} s with each frame encoded once, "
           f"{shared['copies_s']:.2f} s with {shared['k']} copies: "
           f"{shared['copies_over_shared']:.2f}x")  # fmt: skip
