@@ -1,8 +1,11 @@
 """Shapes, bounds, the ResNet18 layout, gradient paths and freezing of the training models."""
 
+import dataclasses
+
 import pytest
 import torch
 
+from carrt.errors import UserError
 from training.backbone import ResNet18Backbone
 from training.data import Normalisation
 from training.models import NIG, PolicyNet, WorldModel, WorldPrediction
@@ -273,3 +276,115 @@ def test_world_model_encodes_a_frame_once_for_its_sequences():
         torch.testing.assert_close(value, copies[name], rtol=1e-4, atol=1e-5)
     with pytest.raises(ValueError, match="5 sequences, 2 frames"):
         world(image, speed, actions[:5])
+
+
+# ---------------------------------------------------------- where the actions enter (issue 59)
+ALL = dataclasses.replace(TINY, world_action_inputs="all")
+
+
+def paper_forward(world, image, speed, actions):
+    """Reveries-net's forward as it was before `world_action_inputs` existed (actions into the
+    first GRU layer only), written out on the module's own parts."""
+    context = world._encode(image, speed)
+    x, states = world.action_net(actions.to(torch.float32)), []
+    for init, gru in zip(world.init_state, world.gru, strict=True):
+        x, _ = gru(x, torch.tanh(init(context)).unsqueeze(0))
+        states.append(x)
+    n, h = x.shape[:2]
+    img = world.image_head(states[0].reshape(n * h, -1)).view(n, h, 4, 3, 16, 16)
+    return (
+        img,
+        world.speed_head(states[1]),
+        torch.nn.functional.softplus(world.collision_head(states[-1])),
+    )
+
+
+def test_first_is_the_paper_forward_bit_for_bit_with_the_same_weights():
+    assert TINY.world_action_inputs == "first"
+    torch.manual_seed(0)
+    world = WorldModel(TINY).eval()
+    again = WorldModel(ALL)
+    # the paper's layout: layers 2, 3 read the hidden state alone, the heads the state alone
+    shapes = {k: tuple(v.shape) for k, v in world.state_dict().items()}
+    hidden = TINY.gru_hidden
+    assert shapes["gru.1.weight_ih_l0"] == (3 * hidden, hidden)
+    assert shapes["collision_head.0.weight"] == (hidden, hidden)
+    assert shapes["image_head.fc.weight"][1] == hidden
+    assert again.state_dict()["gru.1.weight_ih_l0"].shape == (3 * hidden, hidden + 8)
+    image, speed, actions = batch(3, TINY)
+    with torch.no_grad():
+        pred = world(image, speed, actions)
+        img, spd, coll = paper_forward(world, image, speed, actions)
+    assert torch.equal(pred.collision, coll)
+    assert torch.equal(pred.speed.gamma[..., 0], spd[..., 0])
+    assert torch.equal(pred.image.gamma, img[:, :, 0])
+
+
+def test_all_has_the_same_output_shapes():
+    torch.manual_seed(0)
+    world = WorldModel(ALL).eval()
+    image, speed, actions = batch(4, ALL)
+    with torch.no_grad():
+        pred = world(image, speed, actions)
+        out = world.imagine(image, speed, actions, 5.0)
+    check_nig(pred.image, (4, ALL.horizon, 3, 16, 16))
+    check_nig(pred.speed, (4, ALL.horizon, 1))
+    assert pred.collision.shape == (4, ALL.horizon, 2) and (pred.collision >= 0).all()
+    assert all(v.shape == (4, ALL.horizon) for v in out.values())
+
+
+def action_entries(world) -> dict[str, tuple[torch.Tensor, slice]]:
+    """Each place the action features enter: (weight, its columns that read them)."""
+    hidden = world.profile.gru_hidden
+    entries = {"gru0": (world.gru[0].weight_ih_l0, slice(None))}
+    if world.action_inputs == "all":
+        for i in range(1, len(world.gru)):
+            entries[f"gru{i}"] = (world.gru[i].weight_ih_l0, slice(hidden, None))
+        entries["collision_head"] = (world.collision_head[0].weight, slice(hidden, None))
+    return entries
+
+
+def collision_gradient(world, only: str | None) -> float:
+    """|d collision evidence / d actions| with every action entry but `only` cut (zeroed)."""
+    image, speed, actions = batch(2, world.profile)
+    with torch.no_grad():
+        for name, (weight, cols) in action_entries(world).items():
+            if name != only:
+                weight[:, cols] = 0.0
+    a = actions.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(world(image, speed, a).collision.sum(), a)
+    return float(grad.abs().sum())
+
+
+@pytest.mark.parametrize("entry", ["gru0", "gru1", "gru2", "collision_head"])
+def test_with_all_the_collision_head_hears_the_action_at_every_entry(entry):
+    torch.manual_seed(0)
+    assert collision_gradient(WorldModel(ALL), entry) > 0
+    torch.manual_seed(0)
+    assert collision_gradient(WorldModel(ALL), "none") == 0  # every entry cut: deaf
+
+
+def test_with_first_cutting_the_first_layer_makes_it_deaf():
+    torch.manual_seed(0)
+    assert collision_gradient(WorldModel(TINY), "gru0") > 0
+    torch.manual_seed(0)
+    assert collision_gradient(WorldModel(TINY), None) == 0
+
+
+def test_action_inputs_travel_with_the_checkpoint_and_old_ones_load_as_first(tmp_path):
+    from training import checkpoint as ck
+    from training.config import IterateConfig, UsageError, apply_set
+
+    cfg = apply_set(IterateConfig(profile="tiny"), ["world_action_inputs=all"])
+    assert cfg.profile_obj == ALL
+    with pytest.raises(UsageError, match="world_action_inputs must be one of first, all"):
+        apply_set(IterateConfig(), ["world_action_inputs=every"]).validate()
+    fields = dataclasses.asdict(cfg.profile_obj)
+    assert ck.profile_of({"profile_fields": fields}).world_action_inputs == "all"
+    old = {k: v for k, v in dataclasses.asdict(TINY).items() if k != "world_action_inputs"}
+    assert ck.profile_of({"profile_fields": old}) == TINY  # saved before the field: first
+    assert ck.profile_of({"profile": "tiny"}) == TINY
+    with pytest.raises(UserError, match="world_action_inputs=all, this model is first"):
+        WorldModel(TINY).load_state_dict(WorldModel(ALL).state_dict())
+    with pytest.raises(UserError, match="world_action_inputs=first, this model is all"):
+        WorldModel(ALL).load_state_dict(WorldModel(TINY).state_dict())

@@ -8,11 +8,11 @@ of steps and batch sizes (PRESETS); `--set field=value` overrides any field.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from carrt.errors import UserError
 from carrt.settings import apply_sets
-from training.profiles import PROFILES, Profile, get_profile
+from training.profiles import PROFILES, WORLD_ACTION_INPUTS, Profile, get_profile
 
 
 class UsageError(UserError):
@@ -77,6 +77,10 @@ class IterateConfig:
     # mirror half of each batch left↔right, steering negated (training/augment.mirror_batch):
     # steering tied to the place on a one-way track cannot stand in for what the image shows
     mirror_world_model: bool = False
+    # where the world model's actions enter (training/models.WorldModel): "first", the paper's
+    # Reveries-net (the first GRU layer only); "all", every GRU layer and every head. Saved in
+    # the checkpoint's profile_fields; a later --init run must give the same
+    world_action_inputs: str = "first"
     # -- stage 3: refinement in imagination (the paper's objective; training/refine.py)
     refine_steps: int = 5000  # optimizer steps (our choice)
     refine_batch_size: int = 36  # global batch of start frames (paper: 36)
@@ -126,7 +130,8 @@ class IterateConfig:
 
     @property
     def profile_obj(self) -> Profile:
-        return get_profile(self.profile)
+        """The named profile's sizes with this run's world_action_inputs."""
+        return replace(get_profile(self.profile), world_action_inputs=self.world_action_inputs)
 
     def validate(self) -> None:
         if self.profile not in PROFILES:
@@ -152,6 +157,11 @@ class IterateConfig:
         for name in non_negative:
             if getattr(self, name) < 0:
                 raise UsageError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.world_action_inputs not in WORLD_ACTION_INPUTS:
+            raise UsageError(
+                f"world_action_inputs must be one of {', '.join(WORLD_ACTION_INPUTS)}, "
+                f"got {self.world_action_inputs!r}"
+            )
         if self.world_episodes and self.world_model_steps == 0:
             raise UsageError(
                 "--world-episodes given but world_model_steps is 0: the world model would not "

@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from carrt.errors import UserError
 from carrt.model_contract import ACTION_HIGH, ACTION_LOW
 from training.backbone import ResNet18Backbone
 from training.losses import NIG, dirichlet_probability, dirichlet_uncertainty, nig_uncertainty
@@ -212,6 +213,14 @@ class WorldModel(_Normalised):
     single-layer nn.GRU modules stacked by hand, so each layer's state sequence is available:
     layer 1's drives the image decoder, layer 2's the speed head, the last layer's the
     collision head (the paper's assignment).
+
+    `profile.world_action_inputs` says where the actions enter. "first" is the paper's: the
+    first GRU layer only, so every later state and every head sees an action only through
+    states the image initialised, and a model fitted to drives where the action is a function
+    of the image can ignore it. "all" (issue 59, 3a) also feeds the step's action features to
+    every later GRU layer (concatenated with the layer below's state) and to every head
+    (concatenated with the state it reads): the collision head can read the action directly.
+    "first" builds exactly the modules, parameters and forward it always did.
     """
 
     def __init__(self, profile: Profile) -> None:
@@ -228,13 +237,16 @@ class WorldModel(_Normalised):
             nn.Linear(context, hidden) for _ in range(profile.gru_layers)
         )
         self.action_net = nn.Sequential(nn.Linear(2, profile.action_features), nn.ReLU())
+        self.action_inputs = profile.world_action_inputs
+        # "all": each later layer and each head also gets the step's action features
+        extra = profile.action_features if self.action_inputs == "all" else 0
         self.gru = nn.ModuleList(
-            nn.GRU(profile.action_features if i == 0 else hidden, hidden, batch_first=True)
+            nn.GRU(profile.action_features if i == 0 else hidden + extra, hidden, batch_first=True)
             for i in range(profile.gru_layers)
         )
-        self.image_head = ImageDecoder(hidden, profile.width, profile.predict_size)
-        self.speed_head = _mlp(hidden, 4)
-        self.collision_head = _mlp(hidden, 2)
+        self.image_head = ImageDecoder(hidden + extra, profile.width, profile.predict_size)
+        self.speed_head = _mlp(hidden + extra, 4)
+        self.collision_head = _mlp(hidden + extra, 2)
         # The weight of the collision class in the loss this model was trained with (set by
         # the world-model stage): imagine() divides it back out of the odds. Saved with the
         # weights, so a loaded model imagines what it imagined in the run that made it.
@@ -248,13 +260,14 @@ class WorldModel(_Normalised):
         if rest or k < 1:
             raise ValueError(f"world model: {actions.shape[0]} sequences, {len(context)} frames")
         context = context.repeat_interleave(k, dim=0) if k > 1 else context
-        x = self.action_net(actions.to(torch.float32))
-        states: list[Tensor] = []
+        a = self.action_net(actions.to(torch.float32))
+        every = self.action_inputs == "all"
+        x, states = a, []
         with _rnn_backward_outside_training(self.training):
-            for init, gru in zip(self.init_state, self.gru, strict=True):
+            for i, (init, gru) in enumerate(zip(self.init_state, self.gru, strict=True)):
                 h0 = torch.tanh(init(context)).unsqueeze(0)
-                x, _ = gru(x, h0)
-                states.append(x)
+                x, _ = gru(torch.cat([x, a], dim=-1) if every and i else x, h0)
+                states.append(torch.cat([x, a], dim=-1) if every else x)  # what the heads read
         n, h = x.shape[0], x.shape[1]
         img = self.image_head(states[0].reshape(n * h, -1))
         img = img.view(n, h, *img.shape[1:])  # (N, H, 4, 3, P, P)
@@ -317,9 +330,17 @@ class WorldModel(_Normalised):
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """A checkpoint saved before `collision_class_weight` existed loads with weight 1 (no
-        correction): the weight it was trained with was not recorded."""
+        correction): the weight it was trained with was not recorded. Weights of the other
+        `world_action_inputs` form are refused in one line naming the form they need."""
         if "collision_class_weight" not in state_dict:
             state_dict = {**state_dict, "collision_class_weight": torch.ones(1)}
+        head = state_dict.get("collision_head.0.weight")
+        if head is not None and head.shape != self.collision_head[0].weight.shape:
+            form = "first" if head.shape[1] == self.profile.gru_hidden else "all"
+            raise UserError(
+                f"world model weights of world_action_inputs={form}, this model is "
+                f"{self.action_inputs}: --set world_action_inputs={form}"
+            )
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def freeze(self) -> None:

@@ -10,6 +10,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+# Where the world model's actions enter (WorldModel): "first", the paper's Reveries-net (the
+# first GRU layer only); "all", every GRU layer and every head, so a head can read the action
+# directly instead of through states the image set.
+WORLD_ACTION_INPUTS = ("first", "all")
+
 
 @dataclass(frozen=True)
 class Profile:
@@ -24,6 +29,9 @@ class Profile:
     horizon: int = 10  # H, the paper's 1 s at 10 Hz
     min_sigma: float = 0.05  # floor on the policy's σ (DESIGN §2 pitfalls)
     input_size: int = 96  # side the 96×96 frame is resized to inside the model (backbone input)
+    # WORLD_ACTION_INPUTS; set per run (IterateConfig.world_action_inputs), saved in the
+    # checkpoint's profile_fields; a checkpoint from before the field loads as "first"
+    world_action_inputs: str = "first"
 
     def __post_init__(self) -> None:
         sizes = ("width", "speed_features", "action_features", "gru_hidden", "gru_layers")
@@ -31,8 +39,10 @@ class Profile:
         bad = [f"{k}={getattr(self, k)}" for k in sizes if int(getattr(self, k)) < 1]
         if not self.min_sigma > 0:
             bad.append(f"min_sigma={self.min_sigma}")
+        if self.world_action_inputs not in WORLD_ACTION_INPUTS:
+            bad.append(f"world_action_inputs={self.world_action_inputs!r} (one of first, all)")
         if bad:
-            raise ValueError(f"profile {self.name!r}: must be positive: {', '.join(bad)}")
+            raise ValueError(f"profile {self.name!r}: out of range: {', '.join(bad)}")
 
     @property
     def image_features(self) -> int:
