@@ -22,7 +22,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "eval",
         help="drive a policy on simulated placements (fast, auto-reset) and print the paper's "
-        "table: completion, collisions/min, average speed, laps (mean ± std)",
+        "table: completion, collisions/min, average speed, laps, and the racing numbers laps/min, "
+        "lap time and progress per metre driven (mean ± std)",
     )
     who = parser.add_mutually_exclusive_group(required=True)
     who.add_argument("--model", help="policy .onnx to evaluate, or `demo` for the shipped one")

@@ -155,3 +155,82 @@ def test_run_metrics_reads_any_log_with_the_columns():
     assert m.completion_ratio == pytest.approx(12.0 / track.length)
     x, _, _ = pose_at(track, 0.0)
     assert x == pytest.approx(3.2)
+
+
+def test_laps_per_minute_and_mean_lap_from_known_lap_times():
+    t, x, y, v, progress, lap = _straight_run(35.0, speed=1.0)  # laps at 10, 20, 30 s
+    m = compute_metrics(t, x, y, v, progress, None, lap, L)
+    assert m.laps_per_min == pytest.approx(3 / (35.0 / 60.0))
+    assert m.lap_time_mean == pytest.approx(10.0)
+    # a crash in lap 2 and 3 s of resetting: lap 2 is no clean lap, and minutes of driving are
+    # what laps are counted against (standing crashed and resetting excluded)
+    collision = np.zeros(len(t), dtype=bool)
+    collision[150] = True
+    resetting = (t > 15.0) & (t <= 18.0)
+    m = compute_metrics(t, x, y, v, progress, collision, lap, L, resetting=resetting)
+    assert m.driving_time == pytest.approx(35.0 - 0.1 - 3.0)
+    assert m.laps_per_min == pytest.approx(3 / ((35.0 - 3.1) / 60.0))
+    assert m.lap_times == pytest.approx((10.0, 10.0)) and m.lap_time_mean == pytest.approx(10.0)
+    uneven = lap.copy()
+    uneven[[100, 200]] = False
+    uneven[[80, 240]] = True  # laps of 8, 16 and 6 s
+    m = compute_metrics(t, x, y, v, progress, None, uneven, L)
+    assert m.lap_time_mean == pytest.approx(10.0) and m.best_lap == pytest.approx(6.0)
+    none = compute_metrics(t[:50], x[:50], y[:50], v[:50], progress[:50], None, lap[:50], L)
+    assert (none.laps_per_min, none.lap_time_mean) == (0.0, None)
+
+
+def test_progress_per_metre_is_one_on_the_centerline():
+    track = build_track("hard", 3)
+    s = np.arange(0.0, 1.5 * track.length, 0.05)  # 1.5 laps along the centerline at 1 m/s
+    x, y = np.array([pose_at(track, si)[:2] for si in s]).T
+    t = s.copy()
+    m = compute_metrics(t, x, y, np.ones(len(t)), s, None, None, track.length)
+    assert m.progress_per_metre == pytest.approx(1.0, abs=0.01)
+    assert m.along_track == pytest.approx(s[-1])
+
+
+def test_progress_per_metre_falls_with_a_loop_across_the_infield():
+    """5 m along a straight track, a full loop of radius 1 m (2π m driven, no net progress),
+    5 m more: 10 m of progress for 10 + 2π m driven. Progress is the position along the track
+    (here x), as the simulator's is."""
+    dt, ds = 0.01, 0.01
+    first = np.arange(0.0, 5.0, ds)
+    angle = np.arange(0.0, 2 * np.pi, ds)  # the loop starts at (5, 0) heading +x, turning left
+    loop_x, loop_y = 5.0 + np.sin(angle), 1.0 - np.cos(angle)
+    last = np.arange(5.0, 10.0 + ds / 2, ds)
+    x = np.concatenate([first, loop_x, last])
+    y = np.concatenate([np.zeros_like(first), loop_y, np.zeros_like(last)])
+    t = np.arange(len(x)) * dt
+    m = compute_metrics(t, x, y, np.ones(len(t)), x, None, None, 100.0)
+    assert m.distance == pytest.approx(10.0 + 2 * np.pi, rel=1e-3)
+    assert m.progress_per_metre == pytest.approx(10.0 / (10.0 + 2 * np.pi), rel=1e-3)
+    n = len(first)
+    before = compute_metrics(t[:n], x[:n], y[:n], np.ones(n), x[:n], None, None, 100.0)
+    assert before.progress_per_metre == pytest.approx(1.0), "on the line before the loop"
+
+
+def test_a_resets_jump_is_neither_distance_nor_progress():
+    t, x, y, v, progress, lap = _straight_run(20.0)
+    collision = np.zeros(len(t), dtype=bool)
+    collision[50] = True
+    resetting = (t > 5.0) & (t <= 6.0)
+    jumped = progress + np.where(t > 6.0, 2.0, 0.0)  # the car set down 2 m further on
+    hold = np.where(t > 5.0, np.where(t > 6.0, jumped, jumped[50]), jumped)
+    m = compute_metrics(t, hold, y, v, hold, collision, lap, L, resetting=resetting)
+    assert m.along_track == pytest.approx(m.distance)
+    assert m.progress_per_metre == pytest.approx(1.0)
+    back = compute_metrics(t, x, y, v, L - progress, None, None, L)  # driving the wrong way
+    assert back.progress_per_metre == pytest.approx(-1.0)
+
+
+def test_the_racing_numbers_are_in_the_summary_and_the_saved_dict():
+    import dataclasses
+
+    t, x, y, v, progress, lap = _straight_run(35.0)
+    m = compute_metrics(t, x, y, v, progress, None, lap, L)
+    racing = next(line for line in format_metrics(m).splitlines() if line.startswith("racing"))
+    assert "5.14 laps/min of driving, mean lap 10.00 s, progress 1.00 m per m driven" in racing
+    saved = dataclasses.asdict(m)  # what `carrt drive --sim --out` writes as sim_metrics.json
+    assert saved["laps_per_min"] == m.laps_per_min and saved["progress_per_metre"] == 1.0
+    assert saved["lap_time_mean"] == pytest.approx(10.0)

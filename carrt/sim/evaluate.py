@@ -11,6 +11,12 @@ Numbers per run, then mean ± std over every (placement, seed) run:
                      person watching a clock would count them)
   average speed      m/s over driving time (standing crashed and resetting excluded)
   laps               laps completed; metres skipped by auto-resets are not credited
+  laps / min         laps per minute of driving time (the racing number completion cannot
+                     see: it stops at the first failure and is capped at one lap)
+  lap time           mean of the clean laps (no collision, take-over or reset inside), s;
+                     runs without a clean lap are left out of its mean (`null` in the JSON)
+  progress / m       metres gained along the track per metre driven: 1 on the centerline,
+                     lower when the car wanders off the line, loops or goes backwards
 """
 
 from __future__ import annotations
@@ -24,7 +30,15 @@ from typing import Any
 
 from carrt.sim.pool import worker_pool
 
-METRICS = ("completion_ratio", "collisions_per_min", "average_speed", "laps")
+METRICS = (
+    "completion_ratio",
+    "collisions_per_min",
+    "average_speed",
+    "laps",
+    "laps_per_min",
+    "progress_per_metre",
+)
+OPTIONAL = ("lap_time_mean", "best_lap")  # None in a run without a clean lap
 
 
 def evaluate(
@@ -107,7 +121,10 @@ def run_one(
         "average_speed": m.average_speed,
         "top_speed": m.top_speed,
         "laps": m.laps,
+        "laps_per_min": m.laps_per_min,
+        "lap_time_mean": m.lap_time_mean,
         "best_lap": m.best_lap,
+        "progress_per_metre": m.progress_per_metre,
         "interventions": m.interventions,
         "distance": m.distance,
         "driving_time": m.driving_time,
@@ -115,37 +132,53 @@ def run_one(
     }
 
 
-def aggregate(runs: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
-    """Mean and (population) standard deviation of each metric over the runs."""
-    out = {}
+def aggregate(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Mean and (population) standard deviation of each metric over the runs; the lap times
+    over the runs that have one (`runs`: how many; mean and std None when none has)."""
+    out: dict[str, dict[str, Any]] = {}
     for name in (*METRICS, "collisions", "top_speed", "distance"):
-        values = [float(r[name]) for r in runs]
-        n = len(values)
-        mean = sum(values) / n if n else math.nan
-        std = math.sqrt(sum((v - mean) ** 2 for v in values) / n) if n else math.nan
-        out[name] = {"mean": mean, "std": std}
+        out[name] = _mean_std([float(r[name]) for r in runs])
+    for name in OPTIONAL:
+        values = [float(r[name]) for r in runs if r.get(name) is not None]
+        stats = _mean_std(values) if values else {"mean": None, "std": None}
+        out[name] = {**stats, "runs": len(values)}
     return out
 
 
+def _mean_std(values: list[float]) -> dict[str, float]:
+    n = len(values)
+    mean = sum(values) / n if n else math.nan
+    std = math.sqrt(sum((v - mean) ** 2 for v in values) / n) if n else math.nan
+    return {"mean": mean, "std": std}
+
+
 def format_table(result: dict[str, Any], label: str) -> str:
-    """The paper's table: one row for the policy (mean ± std), then one row per run."""
+    """The paper's table with the racing columns: one row for the policy (mean ± std), then one
+    row per run. A lap time is over the runs with a clean lap ("—": none had one)."""
     agg = result["aggregate"]
 
     def pm(name: str, digits: int) -> str:
+        if agg[name]["mean"] is None:
+            return "—"
         return f"{agg[name]['mean']:.{digits}f} ± {agg[name]['std']:.{digits}f}"
 
     runs = result["runs"]
     lines = [
-        "| policy | runs | completion | collisions / min | avg m/s | laps |",
-        "|---|---|---|---|---|---|",
+        "| policy | runs | completion | collisions / min | avg m/s | laps | laps / min "
+        "| lap time s | progress / m |",
+        "|---|---|---|---|---|---|---|---|---|",
         f"| {label} | {len(runs)} | {pm('completion_ratio', 2)} | "
-        f"{pm('collisions_per_min', 1)} | {pm('average_speed', 2)} | {pm('laps', 1)} |",
+        f"{pm('collisions_per_min', 1)} | {pm('average_speed', 2)} | {pm('laps', 1)} | "
+        f"{pm('laps_per_min', 2)} | {pm('lap_time_mean', 2)} | {pm('progress_per_metre', 2)} |",
         "",
-        f"{'track':>6} {'seed':>5} {'completion':>10} {'coll/min':>9} {'avg m/s':>8} {'laps':>5}",
+        f"{'track':>6} {'seed':>5} {'completion':>10} {'coll/min':>9} {'avg m/s':>8} {'laps':>5} "
+        f"{'laps/min':>8} {'lap s':>6} {'prog/m':>6}",
     ]
     for r in runs:
+        lap = "—" if r["lap_time_mean"] is None else f"{r['lap_time_mean']:.2f}"
         lines.append(
             f"{r['track']:>6} {r['seed']:>5} {r['completion_ratio']:>10.2f} "
-            f"{r['collisions_per_min']:>9.1f} {r['average_speed']:>8.2f} {r['laps']:>5d}"
+            f"{r['collisions_per_min']:>9.1f} {r['average_speed']:>8.2f} {r['laps']:>5d} "
+            f"{r['laps_per_min']:>8.2f} {lap:>6} {r['progress_per_metre']:>6.2f}"
         )
     return "\n".join(lines)

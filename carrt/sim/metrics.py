@@ -6,12 +6,19 @@ table: with auto-reset after each crash, collisions, interventions (the person t
 the policy: the same count as the loop's summary and `carrt report`) and the time for 5 laps not
 counting the time spent resetting.
 
+Racing numbers beside them, because completion stops at the first failure and is capped at one
+lap, so it cannot tell a car that races from one that drives fast anywhere (full-speed loops
+across the infield): laps per minute of driving time, the mean clean lap time, and progress per
+metre (metres gained along the track per metre driven: 1 on the centerline, a little more on an
+inside line, less when the car wanders, loops or goes backwards).
+
 Everything works on plain arrays sampled along the run, so the same code scores the simulator,
 a recorded episode or the real car's log. Sample i covers the interval (t[i-1], t[i]].
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +40,20 @@ class SimMetrics:
     time_for_laps: float | None  # s to complete n_laps laps, reset time excluded; None if fewer
     driving_time: float  # s
     distance: float  # m driven (path length, resets' jumps excluded)
+    along_track: float = math.nan  # m of progress along the track over that same path; nan: unknown
+    # derived, stored (not properties) so that dataclasses.asdict and the saved JSON carry them
+    laps_per_min: float = field(init=False)  # laps per minute of driving time
+    lap_time_mean: float | None = field(init=False)  # s, mean of lap_times; None without one
+    progress_per_metre: float = field(init=False)  # along_track / distance; 0 when not driven
+
+    def __post_init__(self) -> None:
+        minutes = self.driving_time / 60.0
+        per_min = self.laps / minutes if minutes > 0 else 0.0
+        mean = sum(self.lap_times) / len(self.lap_times) if self.lap_times else None
+        per_metre = self.along_track / self.distance if self.distance > 0 else 0.0
+        object.__setattr__(self, "laps_per_min", per_min)
+        object.__setattr__(self, "lap_time_mean", mean)
+        object.__setattr__(self, "progress_per_metre", per_metre)
 
     @property
     def best_lap(self) -> float | None:
@@ -66,7 +87,7 @@ def compute_metrics(
     resetting = _flags(resetting, n)
     failure = crash | _flags(intervention, n)
     if n == 0:
-        return SimMetrics(0.0, 0.0, 0.0, (), 0, 0, 0, None, 0.0, 0.0)
+        return SimMetrics(0.0, 0.0, 0.0, (), 0, 0, 0, None, 0.0, 0.0, 0.0)
 
     dt = np.diff(t, prepend=t[0])
     driving = ~resetting & ~crash
@@ -78,6 +99,8 @@ def compute_metrics(
     after_break = np.concatenate(([True], (failure | resetting)[:-1]))
     moving = driving & ~after_break & (steps < TELEPORT_M)
     distance = float(np.sum(steps[moving]))
+    # the progress made on exactly those steps: a reset's jump along the track is no driving
+    along_track = float(np.sum(np.diff(progress, prepend=progress[0])[moving]))
 
     first_failure = int(np.argmax(failure)) if failure.any() else n - 1
     safe = float(np.max(progress[: first_failure + 1]) - progress[0])
@@ -109,6 +132,7 @@ def compute_metrics(
         time_for_laps=time_for_laps,
         driving_time=driving_time,
         distance=distance,
+        along_track=along_track,
     )
 
 
@@ -172,11 +196,15 @@ def run_metrics(track: Track, trajectory, *, n_laps: int = 5) -> SimMetrics:
 def format_metrics(m: SimMetrics) -> str:
     """The run's numbers as a short human-readable block."""
     timed = f"{m.time_for_laps:.1f} s" if m.time_for_laps is not None else "not reached"
+    mean_lap = f"{m.lap_time_mean:.2f} s" if m.lap_time_mean is not None else "—"
+    per_metre = "—" if math.isnan(m.progress_per_metre) else f"{m.progress_per_metre:.2f}"
     return "\n".join(
         [
             f"average speed    {m.average_speed:.2f} m/s (top {m.top_speed:.2f} m/s)",
             f"completion ratio {m.completion_ratio:.3f}",
             f"laps             {m.laps}{_clean_laps(m)}",
+            f"racing           {m.laps_per_min:.2f} laps/min of driving, mean lap {mean_lap}, "
+            f"progress {per_metre} m per m driven",
             f"collisions       {m.collisions}, interventions {m.interventions}",
             f"time for laps    {timed} (resets excluded)",
             f"distance         {m.distance:.1f} m in {m.driving_time:.1f} s of driving",
