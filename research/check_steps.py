@@ -22,7 +22,7 @@ from bench.provenance import environment, recorded
 from carrt.errors import UserError
 from carrt.settings import apply_sets
 from research.dirl_steps import ROOT, every_noise_demonstrations
-from research.dirl_table import cell
+from research.dirl_table import RACING, cell
 from research.paths import outs_at_root
 from research.study_config import StudyConfig, range_problems, usable_cores
 from research.study_steps import StudyStep, finished_steps, run_chains
@@ -50,9 +50,12 @@ def paired(rows: list[dict], model: str, base: str, key: str) -> list[tuple[int,
         b = next((x for x in rows if x["model"] == base and x["seed"] == r["seed"]), None)
         if b is None:
             continue
-        mine = {run["track"]: run[key] for run in r["runs"]}
-        theirs = {run["track"]: run[key] for run in b["runs"]}
-        d = np.array([mine[t] - theirs[t] for t in mine if t in theirs], dtype=float)
+        mine = {run["track"]: run.get(key) for run in r["runs"]}
+        theirs = {run["track"]: run.get(key) for run in b["runs"]}
+        both = [t for t in mine if t in theirs and None not in (mine[t], theirs[t])]
+        if not both:  # a file written before the metric existed
+            continue
+        d = np.array([mine[t] - theirs[t] for t in both], dtype=float)
         se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
         out.append((r["seed"], float(d.mean()), se))
     return out
@@ -60,36 +63,39 @@ def paired(rows: list[dict], model: str, base: str, key: str) -> list[tuple[int,
 
 def report(rows: list[dict], pairs: list[tuple[str, str]]) -> str:
     """Each model's driving (mean ± std over placements and seeds) and the paired differences
-    `pairs` (model, against), seed by seed."""
-    lines = ["| model | seeds | frames | completion | collisions / min | avg m/s |",
-             "|---|---|---|---|---|---|"]  # fmt: skip
+    `pairs` (model, against), seed by seed; the racing columns say "—" for runs that predate
+    them."""
+    lines = ["| model | seeds | frames | completion | collisions / min | avg m/s | laps / min "
+             "| progress / m |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for model in dict.fromkeys(r["model"] for r in rows):
         mine = [r for r in rows if r["model"] == model]
         runs = [run for r in mine for run in r["runs"]]
         frames = [r["frames"] for r in mine if "frames" in r]
         shown = f"{np.mean(frames):,.0f}" if frames else "–"
-        completion, collisions, speed = (
-            cell([run[key] for run in runs], fmt) for key, fmt in METRICS
-        )
-        lines.append(f"| {model} | {len(mine)} | {shown} | {completion} | {collisions} | {speed} |")
+        driving = " | ".join(cell([run.get(k) for run in runs], f) for k, f in METRICS + RACING)
+        lines.append(f"| {model} | {len(mine)} | {shown} | {driving} |")
     lines += [
         "",
         "| model | against | Δ completion, mean ± std over seeds | per seed (± paired SE) "
-        "| Δ collisions / min | per seed |",
-        "|---|---|---|---|---|---|",
+        "| Δ collisions / min | per seed | Δ laps / min |",
+        "|---|---|---|---|---|---|---|",
     ]
     for model, base in pairs:
         comp = paired(rows, model, base, "completion_ratio")
         coll = paired(rows, model, base, "collisions_per_min")
+        laps = paired(rows, model, base, "laps_per_min")
         if not comp:
             continue
         each = ", ".join(f"{d:+.2f} ± {se:.2f}" for _, d, se in comp)
         each_c = ", ".join(f"{d:+.1f} ± {se:.1f}" for _, d, se in coll)
-        mean_comp, mean_coll = (
+        mean_comp, mean_coll, mean_laps = (
             cell([d for _, d, _ in comp], "+.3f"),
             cell([d for _, d, _ in coll], "+.2f"),
+            cell([d for _, d, _ in laps], "+.2f"),
         )
-        lines.append(f"| {model} | {base} | {mean_comp} | {each} | {mean_coll} | {each_c} |")
+        lines.append(
+            f"| {model} | {base} | {mean_comp} | {each} | {mean_coll} | {each_c} | {mean_laps} |"
+        )
     return "\n".join(lines)
 
 

@@ -13,6 +13,9 @@ from pathlib import Path
 import numpy as np
 
 METRICS = (("completion_ratio", ".2f"), ("collisions_per_min", ".1f"), ("average_speed", ".2f"))
+# racing (carrt eval's laps per minute of driving and progress per metre driven): runs written
+# before they existed have neither, and their cells say "—"
+RACING = (("laps_per_min", ".2f"), ("progress_per_metre", ".2f"))
 CHECKS = (("collision_auroc", ".2f"), ("rank_correlation", ".2f"))
 
 
@@ -37,13 +40,14 @@ def groups(rows: list[dict]) -> dict[tuple, list[dict]]:
 def table(rows: list[dict]) -> str:
     lines = [
         "| demo noise σ | model | seeds | frames | completion | collisions / min | avg m/s "
+        "| laps / min | progress / m "
         "| WM collision AUROC | WM rank corr. | WM speed MAE (const.) | chosen by driving |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (sigma, model), rs in groups(rows).items():
         runs = [run for r in rs for run in r["runs"]]
         checks = [r["counterfactual"] or {} for r in rs]
-        driving = " | ".join(cell([run[k] for run in runs], f) for k, f in METRICS)
+        driving = " | ".join(cell([run.get(k) for run in runs], f) for k, f in METRICS + RACING)
         world = " | ".join(cell([c.get(k) for c in checks], f) for k, f in CHECKS)
         mae = cell([c.get("speed_mae") for c in checks], ".2f")
         const = cell([c.get("speed_mae_constant") for c in checks], ".2f")
@@ -90,7 +94,12 @@ def baselines(model: str) -> list[str]:
 
 
 def seed_means(rs: list[dict], key: str) -> dict[int, float]:
-    return {r["seed"]: float(np.mean([run[key] for run in r["runs"]])) for r in rs}
+    """Each seed's mean of `key` over its runs; seeds whose runs lack it are left out."""
+    return {
+        r["seed"]: float(np.mean([run[key] for run in r["runs"]]))
+        for r in rs
+        if all(run.get(key) is not None for run in r["runs"])
+    }
 
 
 def comparison(rows: list[dict]) -> str:
@@ -99,8 +108,8 @@ def comparison(rows: list[dict]) -> str:
     without the placements' own spread (how hard each placement is) in it."""
     lines = [
         "| demo noise σ | model | against | seeds | Δ completion per seed | Δ completion "
-        "| Δ collisions / min |",
-        "|---|---|---|---|---|---|---|",
+        "| Δ collisions / min | Δ laps / min |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     by_key = groups(rows)
     for (sigma, model), rs in by_key.items():
@@ -108,7 +117,7 @@ def comparison(rows: list[dict]) -> str:
             if (sigma, base) not in by_key:
                 continue
             deltas = {}
-            for key, _ in METRICS[:2]:
+            for key in ("completion_ratio", "collisions_per_min", "laps_per_min"):
                 mine, theirs = seed_means(rs, key), seed_means(by_key[(sigma, base)], key)
                 deltas[key] = [mine[s] - theirs[s] for s in sorted(mine) if s in theirs]
             if not deltas["completion_ratio"]:
@@ -117,7 +126,8 @@ def comparison(rows: list[dict]) -> str:
             lines.append(
                 f"| {sigma:g} | {model} | {base} | {len(deltas['completion_ratio'])} "
                 f"| {per_seed} | {cell(deltas['completion_ratio'], '+.2f')} "
-                f"| {cell(deltas['collisions_per_min'], '+.1f')} |"
+                f"| {cell(deltas['collisions_per_min'], '+.1f')} "
+                f"| {cell(deltas['laps_per_min'], '+.2f')} |"
             )
     return "\n".join(lines)
 

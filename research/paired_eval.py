@@ -8,7 +8,9 @@ Why paired: placements differ from one another by more than two good policies do
 placement costs a lap whoever drives it), so each of B's runs is compared with A's run on the
 same placement and seed, and the spread that judges Δ is the paired one. Printed per metric:
 mean Δ (B − A) over runs, its standard error, the per-seed means of Δ, and how many runs B
-did better / worse. Both files must hold the same layout, seconds and (track, seed) runs.
+did better / worse. Both files must hold the same layout, seconds and (track, seed) runs. The
+racing numbers (laps per minute, progress per metre) are compared where both files have them;
+files written before `carrt eval` recorded them show "—" there.
 """
 
 from __future__ import annotations
@@ -27,6 +29,11 @@ from carrt.errors import EXIT_USAGE, UserError
 from research.json_file import read_json
 
 METRICS = ("completion_ratio", "collisions_per_min", "average_speed")
+RACING = ("laps_per_min", "progress_per_metre")  # absent from older carrt eval files
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value)
 
 
 def load(path: str) -> dict:
@@ -35,8 +42,7 @@ def load(path: str) -> dict:
     if not isinstance(data, dict) or not isinstance(data.get("runs"), list) or not data["runs"]:
         raise UserError(f"{path}: not a carrt eval file (no runs)")
     for run in data["runs"]:
-        values = [run.get(k) for k in METRICS]
-        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+        if not all(_finite(run.get(k)) for k in METRICS):
             raise UserError(f"{path}: a run without finite {', '.join(METRICS)}")
     return data
 
@@ -58,7 +64,9 @@ def compare(a: dict, b: dict) -> dict:
     keys = sorted(ra)
     n, seeds = len(keys), sorted({seed for _, seed in keys})
     out = {"runs": n}
-    for metric in METRICS:
+    for metric in METRICS + RACING:
+        if not all(_finite(r[k].get(metric)) for r in (ra, rb) for k in keys):
+            continue  # a racing number one of the files predates: rendered as "—"
         deltas = [rb[k][metric] - ra[k][metric] for k in keys]
         sd = statistics.stdev(deltas) if n > 1 else 0.0
         per_seed = {
@@ -80,7 +88,10 @@ def compare(a: dict, b: dict) -> dict:
 
 def render(result: dict, a: str, b: str) -> str:
     lines = [f"B = {b} against A = {a}, {result['runs']} runs paired by placement and seed:"]
-    for metric in METRICS:
+    for metric in METRICS + RACING:
+        if metric not in result:
+            lines.append(f"  {metric}: — (not in both files)")
+            continue
         m = result[metric]
         seeds = ", ".join(f"{v:+.3f}" for v in m["per_seed"].values())
         lines.append(

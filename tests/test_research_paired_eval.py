@@ -58,3 +58,25 @@ def test_bad_files_end_in_one_line_and_exit_2(tmp_path, capsys, case, says):
     assert paired_eval.main([a, b]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and says in err[0]
+
+
+def test_racing_numbers_are_paired_where_both_files_have_them(tmp_path, capsys):
+    def racing(run, laps, progress):
+        return {**run, "laps_per_min": laps, "progress_per_metre": progress}
+
+    a_runs = [racing(_run(200, 0, 0.9, 2.0), 5.0, 0.9), racing(_run(201, 0, 0.5, 6.0), 3.0, 0.7)]
+    b_runs = [racing(_run(200, 0, 0.9, 2.0), 5.5, 0.95), racing(_run(201, 0, 0.5, 6.0), 2.0, 0.6)]
+    out = tmp_path / "d.json"
+    a, b = _write(tmp_path / "a.json", a_runs), _write(tmp_path / "b.json", b_runs)
+    assert paired_eval.main([a, b, "--json", str(out)]) == 0
+    laps = json.loads(out.read_text())["laps_per_min"]
+    assert laps["delta"] == pytest.approx(-0.25) and (laps["better"], laps["worse"]) == (1, 1)
+    assert "laps_per_min: 4.000 -> 3.750, delta -0.250" in capsys.readouterr().out
+    # A written before carrt eval recorded them: the three old metrics as before, racing "—"
+    old = _write(tmp_path / "old.json", [_run(200, 0, 0.9, 2.0), _run(201, 0, 0.5, 6.0)])
+    assert paired_eval.main([old, b, "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "laps_per_min: — (not in both files)" in text
+    assert "progress_per_metre: — (not in both files)" in text
+    assert "completion_ratio: 0.700 -> 0.700" in text
+    assert "laps_per_min" not in json.loads(out.read_text())

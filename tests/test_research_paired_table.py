@@ -67,3 +67,30 @@ def test_not_a_results_file(tmp_path, capsys):
     other.write_text(json.dumps({"aggregate": {}}))
     assert paired_table.main([str(other), "--pair", "A:B"]) == 2
     assert "not a check's results file" in capsys.readouterr().err
+
+
+def test_racing_columns_where_the_runs_have_them_and_a_dash_where_they_predate_them(
+    tmp_path, capsys
+):
+    def racing(r: dict, laps: list[float]) -> dict:
+        for run, value in zip(r["runs"], laps, strict=True):
+            run.update(laps_per_min=value, progress_per_metre=0.9)
+        return r
+
+    rows = [
+        racing(row("IL", 0, [0.5, 0.6]), [4.0, 5.0]),
+        racing(row("B", 0, [0.7, 0.7]), [5.0, 5.0]),
+        racing(row("IL", 1, [0.5, 0.5]), [4.0, 4.0]),
+        racing(row("B", 1, [0.6, 0.6]), [4.0, 5.0]),
+    ]
+    assert paired_table.main([results(tmp_path, rows), "--pair", "B:IL"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].endswith("| avg m/s | laps / min | progress / m |")
+    assert any(x.startswith("| IL | 2 | 100 |") and x.endswith("| 4.25 ± 0.43 | 0.90 ± 0.00 |")
+               for x in lines)  # fmt: skip
+    # Δ laps / min: seed 0 +0.5, seed 1 +0.5
+    assert lines[-1].endswith("| +0.50 ± 0.00 |")
+    old = [row("IL", 0, [0.5, 0.6]), row("B", 0, [0.7, 0.7])]
+    assert paired_table.main([results(tmp_path, old), "--pair", "B:IL"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[2].endswith("| 1.80 ± 0.00 | — | — |") and lines[-1].endswith("| — |")

@@ -365,3 +365,25 @@ def test_the_ablation_without_uncertainty_can_follow_every_iteration():
     )
     assert [v[0] for v in dirl_sim.ablations(gradient, 3)] == ["unc3"]
     assert [v[0] for v in dirl_sim.ablations(gradient, 1)] == ["unc1"]
+
+
+def test_the_tables_show_laps_per_minute_and_progress_per_metre_where_runs_have_them():
+    def racing(row, laps, progress):
+        for run in row["runs"]:
+            run.update(laps_per_min=laps, progress_per_metre=progress)
+        return row
+
+    rows = [racing(_row("IL", 0, [0.4, 0.6]), 4.0, 0.9), racing(_row("IL", 1, [0.5]), 5.0, 0.8),
+            racing(_row("DIRL iter 1", 0, [0.5], iteration=1), 4.5, 0.95),
+            racing(_row("DIRL iter 1", 1, [0.5], iteration=1), 6.0, 0.85)]  # fmt: skip
+    lines = dirl_table.table(rows).splitlines()
+    assert "| avg m/s | laps / min | progress / m |" in lines[0]
+    il = next(line for line in lines if line.startswith("| 0 | IL |"))
+    # pooled over the three runs: laps 4, 4, 5; progress 0.9, 0.9, 0.8
+    assert "| 1.50 ± 0.00 | 4.33 ± 0.47 | 0.87 ± 0.05 | — |" in il
+    against_il = next(x for x in dirl_table.comparison(rows).splitlines() if "| IL |" in x)
+    assert against_il.endswith("| +0.75 ± 0.25 |"), "Δ laps / min per seed: +0.5, +1.0"
+    # a results file from before the racing numbers: its cells and Δ say "—", nothing fails
+    old = [_row("IL", 0, [0.4]), _row("DIRL iter 1", 0, [0.5], iteration=1)]
+    assert "| 1.50 | — | — | — |" in dirl_table.table(old).splitlines()[2]
+    assert dirl_table.comparison(old).splitlines()[2].endswith("| +0.10 | +0.0 | — |")
