@@ -1,0 +1,67 @@
+"""The world-model check (research/world_model_check.py) end to end at tiny sizes: recordings,
+a weak policy, its drives, the held-out set, a world model of each form, each scored; run again,
+every step is skipped; a bad setting is one line and exit 2."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+pytest.importorskip("torch")
+
+from research import world_model_check as wmc
+
+TINY = ["profile=tiny", "train_tracks=1000", "demo_episodes=2", "weak_frames=10",
+        "weak_steps=3", "drive_seconds=4", "world_model_steps=4", "counterfactual_tracks=200",
+        "counterfactual_starts=2", "json="]  # fmt: skip
+
+
+def sets(*items: str) -> list[str]:
+    return [arg for item in items for arg in ("--set", item)]
+
+
+def test_the_check_trains_and_scores_both_forms_and_resumes(tmp_path, capsys):
+    argv = sets(*TINY, f"out={tmp_path}")
+    assert wmc.main(argv) == 0
+    printed = capsys.readouterr().out
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert [(r["form"], r["seed"]) for r in results["rows"]] == [("first", 0), ("all", 0)]
+    assert results["targets"] == wmc.TARGETS
+    assert results["config"]["world_model_steps"] == 4
+    assert results["environment"]["date"] and results["data"]["set"]["starts"] == 2
+    for name in ("demos", "drives"):
+        assert results["data"][name]["frames"] > 0
+    for row in results["rows"]:
+        for key in ("steering_sign_agreement", "ordered_right", "collision_auroc",
+                    "rank_correlation"):  # fmt: skip
+            value = row[key]
+            assert value is None or math.isnan(value) or -1.0 <= value <= 1.0
+            assert row["meets"][key] is (value is not None and value >= wmc.TARGETS[key])
+        assert row["passes"] is all(row["meets"].values())
+        assert row["check"]["starts"] == 2 and row["check"]["sequences_per_start"] == 9
+    # the two forms are different models: the world models' checkpoints say which they are
+    for form in ("first", "all"):
+        from training import checkpoint as ck
+
+        model, _ = ck.load_world_model(tmp_path / "runs" / f"{form}-seed0" / "world_model.pt")
+        assert model.action_inputs == form
+    table = (tmp_path / "table.md").read_text()
+    assert "| first | 1 |" in table and "| all | 1 |" in table and "| first | 1 |" in printed
+    assert (wmc.STOP in table) is (not results["passing_forms"])
+    # resumed: every step's marker found, nothing runs again, the same numbers
+    assert wmc.main(argv) == 0
+    again = json.loads((tmp_path / "results.json").read_text())
+    assert [r["collision_auroc"] for r in again["rows"]] == [
+        r["collision_auroc"] for r in results["rows"]
+    ] or all(math.isnan(r["collision_auroc"]) for r in results["rows"])
+
+
+def test_a_bad_setting_is_one_line_and_exit_2(tmp_path, capsys):
+    assert wmc.main(sets(f"out={tmp_path}", "forms=first,every")) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "world_model_check: error: forms: ('first', 'every') (each one of first, all)"
+    with pytest.raises(SystemExit) as exc:
+        wmc.main(sets("world_model_stepz=3"))
+    assert exc.value.code == 2 and "did you mean world_model_steps" in capsys.readouterr().err
