@@ -2,7 +2,7 @@
 on the same held-out starts by the counterfactual check (issue 59, item 3).
 
     python -m research.world_model_check                                  # ~40 min, 1 core
-    python -m research.world_model_check --set world_model_steps=1500 --set seeds=0,1
+    python -m research.world_model_check --set world_model_steps=1500 --set seeds=0
 
 Why: refinement and planning trust the world model's answer to "what if the car did this
 instead?". The check (research/variants/counterfactual.py) measured the paper's Reveries-net
@@ -68,7 +68,7 @@ class WorldModelCheckConfig:
     out: str = "research/runs/world_model_check"  # steps, logs, runs (not in git)
     json: str = "research/results/world_model_check.json"  # the results ("" : OUT's only)
     forms: tuple[str, ...] = FORMS  # training/config.py world_action_inputs; "first" always
-    seeds: tuple[int, ...] = (0,)  # training seeds (model init, batch order)
+    seeds: tuple[int, ...] = (0, 1)  # training seeds (model init, batch order)
     profile: str = "cpu"
     layout: str = "hard"
     train_tracks: str = "1000-1039"  # every recording (training placements)
