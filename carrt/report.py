@@ -12,7 +12,8 @@ it, so the next episode's first mark starts a lap and closes none (carrt/laps.py
 loop's summary and the simulator count by too). Time is the measured frame capture times;
 excluded are (a) the stretches after a collision or e-stop while the car is DISARMED or in ESTOP,
 until it is driving again (the reset), and (b) anything between two episodes, which was not
-recorded.
+recorded. Laps per minute are the timed laps over the minutes of driving (MANUAL or AUTO), as
+the simulator's metrics count them (carrt/sim/metrics.py).
 """
 
 from __future__ import annotations
@@ -122,6 +123,7 @@ def run_metrics(name: str, episodes: list[Episode]) -> dict[str, Any]:
     collisions = sum(
         len(collision_events(ep.steps, (ep.meta.get("end") or {}).get("reason"))) for ep in episodes
     )
+    laps = lap_times(episodes)
     return {
         "run": name,
         "episodes": [ep.name for ep in episodes],
@@ -132,7 +134,8 @@ def run_metrics(name: str, episodes: list[Episode]) -> dict[str, Any]:
         "interventions": int(np.count_nonzero(column("override"))),
         "estops": sum(estop_count(ep.steps) for ep in episodes),
         "collisions": collisions,
-        **lap_times(episodes),
+        **laps,
+        "laps_per_min": len(laps["laps_s"]) / (driving_s / 60.0) if driving_s > 0 else None,
     }
 
 
@@ -152,7 +155,7 @@ def render_table(runs: list[dict[str, Any]]) -> str:
     header = (
         f"{'run':<28} {'eps':>4} {'frames':>7} {'drive s':>8} {'avg m/s':>8} {'top m/s':>8} "
         f"{'interv':>6} {'e-stop':>6} {'coll':>5} {'laps':>5} {'lap total s':>12} "
-        f"{'mean lap s':>11}"
+        f"{'mean lap s':>11} {'laps/min':>8}"
     )
     lines = [header, "-" * len(header)]
     for r in runs:
@@ -161,7 +164,8 @@ def render_table(runs: list[dict[str, Any]]) -> str:
             f"{name:<28} {len(r['episodes']):>4} {r['frames']:>7} {r['driving_s']:>8.1f} "
             f"{r['avg_speed_mps']:>8.2f} {r['top_speed_mps']:>8.2f} {r['interventions']:>6} "
             f"{r['estops']:>6} {r['collisions']:>5} {len(r['laps_s']):>5} "
-            f"{_fmt(r['laps_total_s']):>12} {_fmt(r['lap_mean_s']):>11}"
+            f"{_fmt(r['laps_total_s']):>12} {_fmt(r['lap_mean_s']):>11} "
+            f"{_fmt(r['laps_per_min']):>8}"
         )
     for r in runs:
         prefix = f"{r['run']}: "

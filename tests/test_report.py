@@ -105,3 +105,16 @@ def test_cli_table_json_and_per_episode(tmp_path, capsys):
     assert args.func(args) == 0
     text = capsys.readouterr().out
     assert "no lap marks" in text and text.count("\n") >= 5
+
+
+def test_laps_per_minute_are_the_timed_laps_over_the_minutes_of_driving(tmp_path):
+    ep = read_episode(write_episode(tmp_path, trial()))
+    r = report.run_metrics("trial", [ep])
+    assert r["laps_per_min"] == pytest.approx(2 / (12.0 / 60.0))  # 2 laps in 12 s of driving
+    header, _, row = report.render_table([r]).splitlines()[:3]
+    assert header.split()[-1] == "laps/min" and row.split()[-1] == "10.00"
+    unmarked = report.run_metrics("x", [read_episode(write_episode(tmp_path, build([(20, M, 1)])))])
+    assert unmarked["laps_per_min"] == 0.0
+    parked = report.run_metrics("p", [read_episode(write_episode(tmp_path, build([(9, D, 0)])))])
+    assert parked["laps_per_min"] is None
+    assert report.render_table([parked]).splitlines()[2].split()[-1] == "-"

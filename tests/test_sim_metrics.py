@@ -234,3 +234,14 @@ def test_the_racing_numbers_are_in_the_summary_and_the_saved_dict():
     saved = dataclasses.asdict(m)  # what `carrt drive --sim --out` writes as sim_metrics.json
     assert saved["laps_per_min"] == m.laps_per_min and saved["progress_per_metre"] == 1.0
     assert saved["lap_time_mean"] == pytest.approx(10.0)
+
+
+def test_the_saved_runs_table_of_carrt_report_shows_the_racing_numbers():
+    from carrt.sim.runs import render_sim_table
+
+    t, x, y, v, progress, lap = _straight_run(35.0)
+    m = compute_metrics(t, x, y, v, progress, None, lap, L)
+    header, row = render_sim_table([("run", m)]).splitlines()
+    assert "completion prog/m best lap s laps/min laps collisions" in " ".join(header.split())
+    # completion, progress per metre, best lap, laps per minute, laps, collisions, 5 laps
+    assert row.split()[3:] == ["100.0%", "1.00", "10.00", "5.14", "3", "0", "-"]

@@ -50,16 +50,18 @@ def load_metrics(path: Path) -> tuple[str, Any]:
 
 
 def render_sim_table(rows: list[tuple[str, Any]]) -> str:
-    """The paper's simulation table, plus its real-car columns for auto-reset runs."""
+    """The paper's simulation table, plus its real-car columns for auto-reset runs and the
+    racing numbers (laps per minute of driving, progress per metre driven)."""
     lines = [
-        f"{'run':<34} {'avg m/s':>7} {'top m/s':>7} {'completion':>10} {'best lap s':>10} "
-        f"{'laps':>4} {'collisions':>10} {'5 laps s':>8}",
+        f"{'run':<34} {'avg m/s':>7} {'top m/s':>7} {'completion':>10} {'prog/m':>6} "
+        f"{'best lap s':>10} {'laps/min':>8} {'laps':>4} {'collisions':>10} {'5 laps s':>8}",
     ]
     for name, m in rows:
         best = f"{m.best_lap:.2f}" if m.best_lap is not None else "-"
         five = f"{m.time_for_laps:.1f}" if m.time_for_laps is not None else "-"
         lines.append(
             f"{name[:34]:<34} {m.average_speed:7.2f} {m.top_speed:7.2f} "
-            f"{m.completion_ratio:10.1%} {best:>10} {m.laps:4d} {m.collisions:10d} {five:>8}"
+            f"{m.completion_ratio:10.1%} {m.progress_per_metre:6.2f} {best:>10} "
+            f"{m.laps_per_min:8.2f} {m.laps:4d} {m.collisions:10d} {five:>8}"
         )
     return "\n".join(lines)
