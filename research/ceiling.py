@@ -1,0 +1,607 @@
+"""The ceiling: model-predictive control with the simulator itself as a perfect world model.
+
+    python -m research.ceiling --models demo,weak=research/runs/weak/policy.onnx \
+        --forms plain,speed,progress,survival --tracks 200-219 --seeds 0,1 --seconds 30 \
+        --out research/runs/ceiling --results research/results/ceiling.json --jobs 1
+
+Why: refinement in a learned world model trusts that model's answer to "what if the car did
+this instead?". Before asking how much a learned model gets wrong, this asks how much a model
+that gets nothing wrong could give: at every 10 Hz control step the policy's plan μ and 12
+alternatives around it (CANDIDATES) are each run open-loop for H steps in a clone of the
+simulator, scored by an objective form (FORMS), and the first action of the best plan is
+driven. What that gains over the policy alone (`plain`) is the most any world model with that
+objective and that search could recover; every learned model is judged by the fraction of it it
+recovers. The objective forms are compared on it too, since here the truth is free: `speed` is
+the paper's (it pays for speed anywhere), `progress` and `survival` pay for metres along the
+track, which only the simulator knows exactly (allowed here: this is the ceiling, not a policy).
+
+The drive itself is a compact copy of what `carrt eval` runs, so plain and controlled runs
+differ only in the choice of action: one command per 100 ms held through the board's throttle
+rise limit (carrt.sim.counterfactual.hold), the camera frame the latest of a 30 fps camera whose
+phase the run seed draws (as carrt.sim.rig does), the speed the car's, and after a collision
+the person's auto-reset and a RESET_PAUSE_S standstill (SimPilot's e-stop, settle, clear, arm).
+No board, no arbitration, no rendering in the rollouts: that is what makes 13 × H steps per
+control step affordable on one core.
+
+Validation placements only (the `hard` layout's 200-219 by default); the test placements
+100-199 are refused. Each run is one JSON under OUT, kept: a second call skips it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import math
+import random
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+if __package__ in (None, ""):  # run as a file, from any directory: the repository on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np
+
+from carrt.arg_types import parse_int_list
+from carrt.errors import EXIT_USAGE, UserError
+from carrt.sim.counterfactual import THROTTLE_RISE_PER_S
+from carrt.sim.metrics import TrajectoryRecorder
+from carrt.sim.world import SimWorld, StepInfo
+from research.paths import at_root
+
+CONTROL_PERIOD_S = 0.1
+CHUNK_S = 0.01  # the driven period in 10 ms chunks: throttle rise limit and camera poses
+CAMERA_FPS = 30.0
+RESET_PAUSE_S = 1.0  # the car stands after an auto-reset: e-stop, settle, clear, arm (SimPilot)
+EVALUATION_TRACKS = frozenset(range(100, 200))  # the test placements: never driven here
+
+# The 13 plans, each (name, steering offset, throttle factor) applied to every step of μ and
+# clipped to the policy's bounds: μ itself, six steering offsets, two throttle scalings, and
+# the four combinations of ±0.3 steering with either throttle scaling. μ is first, so a tie
+# keeps it.
+CANDIDATES: tuple[tuple[str, float, float], ...] = (
+    ("mu", 0.0, 1.0),
+    ("steer-0.6", -0.6, 1.0),
+    ("steer-0.3", -0.3, 1.0),
+    ("steer-0.15", -0.15, 1.0),
+    ("steer+0.15", 0.15, 1.0),
+    ("steer+0.3", 0.3, 1.0),
+    ("steer+0.6", 0.6, 1.0),
+    ("throttle*0.5", 0.0, 0.5),
+    ("throttle*1.2", 0.0, 1.2),
+    ("steer-0.3,throttle*0.5", -0.3, 0.5),
+    ("steer+0.3,throttle*0.5", 0.3, 0.5),
+    ("steer-0.3,throttle*1.2", -0.3, 1.2),
+    ("steer+0.3,throttle*1.2", 0.3, 1.2),
+)
+FORMS = ("plain", "speed", "progress", "survival")  # plain: the policy alone, no search
+MAX_GAIN_PER_METRE = 2.0  # progress counted per metre driven, at most (hold_counted says why)
+TIE_TOLERANCE = 1e-9  # a plan must beat μ by more than this to replace it
+
+
+@dataclass(frozen=True)
+class Weights:
+    """The objective forms' constants. The speed form's are training's refinement weights (the
+    paper's objective as carrt refines with it); the crash cost of the progress forms is larger
+    than any plan's progress over the horizon (2.5 m/s top speed × 1 s), so no crash is worth
+    its metres; survival discounts each step ahead by `discount` (the first step is the one
+    that runs; later ones are replanned) and adds the speed at the horizon's end × `beyond_s`
+    for what lies beyond it, when the plan survived."""
+
+    w_speed: float = 1.0
+    w_collision: float = 10.0
+    crash_cost_m: float = 10.0
+    discount: float = 0.9
+    beyond_s: float = 0.5
+
+    @classmethod
+    def from_training(cls) -> Weights:
+        from training.config import IterateConfig
+
+        cfg = IterateConfig()
+        return cls(w_speed=cfg.refine_w_speed, w_collision=cfg.refine_w_collision)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What a plan really did, per step ahead (after each 100 ms): speed (m/s), progress along
+    the track since the start as hold_counted counts it (m) and whether the car stands
+    collided."""
+
+    speed: np.ndarray
+    progress: np.ndarray
+    collided: np.ndarray
+
+
+# -- the search -------------------------------------------------------------------------------
+
+
+def clone(world: SimWorld) -> SimWorld:
+    """An independent copy of the world's state for a rollout (the immutable track, params and
+    obstacle list shared): ~5 µs, where copy.deepcopy takes ~1.4 ms copying the track too."""
+    twin = copy.copy(world)
+    twin._locator = copy.copy(world._locator)
+    twin.car = copy.copy(world.car)
+    return twin
+
+
+def candidates(mu: np.ndarray, horizon: int, low, high) -> np.ndarray:
+    """(len(CANDIDATES), horizon, 2) plans from the policy's (H_policy, 2) plan μ; a horizon
+    longer than μ's holds its last step."""
+    mu = np.asarray(mu, np.float32)
+    steps = np.minimum(np.arange(horizon), len(mu) - 1)
+    base = mu[steps]
+    plans = np.repeat(base[None], len(CANDIDATES), axis=0)
+    for i, (_, d_steer, k_throttle) in enumerate(CANDIDATES):
+        plans[i, :, 0] += d_steer
+        plans[i, :, 1] *= k_throttle
+    return np.clip(plans, np.asarray(low, np.float32), np.asarray(high, np.float32))
+
+
+def hold_counted(world: SimWorld, steering: float, throttle: float, throttle_now: float):
+    """One 100 ms command as the board applies it (counterfactual.hold's throttle rise limit,
+    stopping at a collision), and the progress it earned: each 10 ms chunk's gain along the
+    track, counted only while the car is inside the track's markings (track limits) and never
+    more than MAX_GAIN_PER_METRE × the metres it drove. Why both: where two legs of the track
+    lie close, a car cutting across the infield is projected onto the nearer leg at once, and
+    the simulator's own progress jumps metres ahead; a search on that progress finds the cut
+    (measured: placement 200, a survival-form search crossed the infield in its first 5 s).
+    Returns (throttle reached, metres earned)."""
+    earned = 0.0
+    for _ in range(round(CONTROL_PERIOD_S / CHUNK_S)):
+        throttle_now = min(float(throttle), throttle_now + THROTTLE_RISE_PER_S * CHUNK_S)
+        x, y, before = world.car.x, world.car.y, world.progress
+        info = world.step(CHUNK_S, float(steering), throttle_now)
+        if not world.off_track:
+            driven = math.hypot(world.car.x - x, world.car.y - y)
+            gain = world.progress - before
+            earned += min(max(gain, -driven), MAX_GAIN_PER_METRE * driven)
+        if info.collision:
+            break
+    return throttle_now, earned
+
+
+def rollout(world: SimWorld, plan: np.ndarray, throttle_now: float) -> Outcome:
+    """Run the plan open-loop in a clone of `world` (which stays untouched)."""
+    twin = clone(world)
+    h = len(plan)
+    speed, progress = np.zeros(h), np.zeros(h)
+    collided = np.zeros(h, dtype=bool)
+    total = 0.0
+    for k, (steering, throttle) in enumerate(plan):
+        throttle_now, earned = hold_counted(twin, float(steering), float(throttle), throttle_now)
+        total += earned
+        speed[k], progress[k] = twin.car.v, total
+        if twin.collided:  # it stands there, collided, for the rest of the horizon
+            collided[k:] = True
+            progress[k:] = total
+            break
+    return Outcome(speed, progress, collided)
+
+
+def score(form: str, outcome: Outcome, w: Weights) -> float:
+    """Higher is better. speed: Σ (w_speed·v − w_collision·collided) per step, the paper's
+    objective with the true speed and collision; progress: metres along the track over the
+    horizon, less the crash cost; survival: each step's progress discounted by how far ahead
+    it is, counted until the crash, the crash cost discounted the same way, and the speed at the
+    horizon's end × beyond_s when the plan survived."""
+    if form == "speed":
+        return float(np.sum(w.w_speed * outcome.speed - w.w_collision * outcome.collided))
+    crashed = bool(outcome.collided[-1])
+    if form == "progress":
+        return float(outcome.progress[-1] - w.crash_cost_m * crashed)
+    if form == "survival":
+        h = len(outcome.progress)
+        gains = np.diff(outcome.progress, prepend=0.0)
+        alive = ~np.concatenate(([False], outcome.collided[:-1]))  # steps before the crash's
+        weights = w.discount ** np.arange(h)
+        total = float(np.sum(weights * gains * alive))
+        if crashed:
+            first = int(np.argmax(outcome.collided))
+            return total - w.crash_cost_m * w.discount**first
+        return total + w.discount**h * float(outcome.speed[-1]) * w.beyond_s
+    raise ValueError(f"unknown objective form {form!r}")
+
+
+def choose(
+    world: SimWorld, plans: np.ndarray, throttle_now: float, form: str, w: Weights
+) -> tuple[int, np.ndarray]:
+    """The index of the best plan (μ, index 0, unless another beats it) and every score."""
+    scores = np.array([score(form, rollout(world, p, throttle_now), w) for p in plans])
+    best = int(np.argmax(scores))
+    if scores[best] <= scores[0] + TIE_TOLERANCE:
+        best = 0
+    return best, scores
+
+
+# -- one run ----------------------------------------------------------------------------------
+
+
+def drive_period(world, steering: float, throttle: float, throttle_now: float, poses: list):
+    """One 100 ms command on the driven world, as hold() but through a collision to the period's
+    end (the clock runs on while the car stands) and with the pose after each chunk kept for
+    the camera. Returns (throttle reached, a collision happened, a lap was completed, metres of
+    progress beyond MAX_GAIN_PER_METRE × the metres driven: a cut the lap count credits)."""
+    hit = lap = False
+    before, driven = world.progress, 0.0
+    for _ in range(round(CONTROL_PERIOD_S / CHUNK_S)):
+        throttle_now = min(float(throttle), throttle_now + THROTTLE_RISE_PER_S * CHUNK_S)
+        x, y = world.car.x, world.car.y
+        info = world.step(CHUNK_S, float(steering), throttle_now)
+        driven += math.hypot(world.car.x - x, world.car.y - y)
+        hit |= info.collision
+        lap |= info.lap_completed
+        poses.append((world.time, world.car.x, world.car.y, world.car.yaw))
+    del poses[: -round(CONTROL_PERIOD_S / CHUNK_S) - 1]
+    cut = max(0.0, world.progress - before - MAX_GAIN_PER_METRE * driven)
+    return throttle_now, hit, lap, cut
+
+
+def frame_pose(poses: list, now: float, phase_s: float) -> tuple[float, float, float]:
+    """The pose at the latest 30 fps camera frame at or before `now` (frames at phase + n/fps)."""
+    period = 1.0 / CAMERA_FPS
+    frame_t = phase_s + math.floor((now - phase_s) / period + 1e-9) * period
+    for t, x, y, yaw in reversed(poses):
+        if t <= frame_t + 1e-9:
+            return x, y, yaw
+    return poses[0][1:]
+
+
+def racing(m, recorder: TrajectoryRecorder) -> dict[str, Any]:
+    """Laps per minute of driving, mean clean lap time, progress per metre driven: SimMetrics'
+    own fields where carrt.sim.metrics has them, else computed here the same way."""
+    if hasattr(m, "progress_per_metre"):
+        return {k: getattr(m, k) for k in ("laps_per_min", "lap_time_mean", "progress_per_metre")}
+    a = recorder.arrays()
+    flags = a["collision"] | a["resetting"]
+    steps = np.hypot(np.diff(a["x"], prepend=a["x"][0]), np.diff(a["y"], prepend=a["y"][0]))
+    moving = ~flags & ~np.concatenate(([True], flags[:-1])) & (steps < 0.3)
+    along = float(np.sum(np.diff(a["progress"], prepend=a["progress"][0])[moving]))
+    minutes = m.driving_time / 60.0
+    return {
+        "laps_per_min": m.laps / minutes if minutes > 0 else 0.0,
+        "lap_time_mean": sum(m.lap_times) / len(m.lap_times) if m.lap_times else None,
+        "progress_per_metre": along / m.distance if m.distance > 0 else 0.0,
+    }
+
+
+def run(
+    policy,
+    *,
+    layout: str,
+    track: int,
+    seed: int,
+    form: str,
+    seconds: float,
+    horizon: int,
+    weights: Weights,
+) -> dict[str, Any]:
+    """One drive of `seconds` on one placement: the metrics and the choice statistics."""
+    from carrt.sim.render import Renderer
+
+    world = SimWorld(layout=layout, seed=track)
+    renderer = Renderer(world.track)
+    phase = random.Random(seed).uniform(0.0, 1.0 / CAMERA_FPS)
+    recorder = TrajectoryRecorder()
+    recorder.record(world)
+    poses = [(world.time, world.car.x, world.car.y, world.car.yaw)]
+    throttle_now, standing = 0.0, 0
+    cut_m, off_track, driving_steps = 0.0, 0, 0
+    chosen = np.zeros(len(CANDIDATES), dtype=int)
+    d_steer: list[float] = []
+    started = time.perf_counter()
+    for _ in range(round(seconds / CONTROL_PERIOD_S)):
+        if standing > 0:  # the auto-reset's pause: nothing drives
+            standing -= 1
+            throttle_now, _, _, _ = drive_period(world, 0.0, 0.0, 0.0, poses)
+            recorder.record(world, StepInfo(False, "", False), resetting=True)
+            continue
+        driving_steps += 1
+        image = renderer.render(*frame_pose(poses, world.time, phase))
+        plan = policy.predict(image, float(world.car.v))
+        plans = candidates(plan.mu, horizon, policy.action_low, policy.action_high)
+        best = 0
+        if form != "plain":
+            best, _ = choose(world, plans, throttle_now, form, weights)
+            chosen[best] += 1
+            d_steer.append(abs(float(plans[best, 0, 0] - plans[0, 0, 0])))
+        steering, throttle = plans[best, 0]
+        throttle_now, hit, lap, cut = drive_period(world, steering, throttle, throttle_now, poses)
+        recorder.record(world, StepInfo(hit, "", lap))
+        cut_m += cut
+        off_track += world.off_track
+        if hit:  # the person lifts the car back on and it stands a moment
+            world.reset()
+            throttle_now, standing = 0.0, round(RESET_PAUSE_S / CONTROL_PERIOD_S)
+            poses.append((world.time, world.car.x, world.car.y, world.car.yaw))
+    m = recorder.metrics(world.track.length)
+    minutes = (recorder.t[-1] - recorder.t[0]) / 60.0
+    decisions = int(chosen.sum())
+    factors = {f"x{k:g}": 0 for k in (0.5, 1.0, 1.2)}
+    for (_, _, k), n in zip(CANDIDATES, chosen, strict=True):
+        factors[f"x{k:g}"] += int(n)
+    return {
+        "track": track,
+        "seed": seed,
+        "form": form,
+        "horizon": horizon,
+        "seconds": seconds,
+        "completion_ratio": m.completion_ratio,
+        "collisions": m.collisions,
+        "collisions_per_min": m.collisions / minutes if minutes > 0 else 0.0,
+        "laps": m.laps,
+        **racing(m, recorder),
+        "average_speed": m.average_speed,
+        "distance": m.distance,
+        "driving_time": m.driving_time,
+        "off_track_share": off_track / driving_steps if driving_steps else 0.0,
+        "cut_m": cut_m,
+        "decisions": decisions,
+        "kept_mu": float(chosen[0] / decisions) if decisions else 1.0,
+        "mean_abs_dsteering": float(np.mean(d_steer)) if d_steer else 0.0,
+        "throttle_choices": {k: (n / decisions if decisions else 0.0) for k, n in factors.items()},
+        "chosen": {name: int(n) for (name, _, _), n in zip(CANDIDATES, chosen, strict=True)},
+        "wall_s": time.perf_counter() - started,
+    }
+
+
+# -- many runs --------------------------------------------------------------------------------
+
+_POLICIES: dict[str, Any] = {}  # per worker process: each policy file loaded once
+
+
+def _policy(path: str):
+    from carrt.policy import OnnxPolicy
+
+    if path not in _POLICIES:
+        _POLICIES[path] = OnnxPolicy(path, intra_op_threads=1)
+    return _POLICIES[path]
+
+
+def run_task(task: dict[str, Any]) -> dict[str, Any]:
+    """One run into its JSON file (written whole: a kill leaves none), or the kept one."""
+    target = Path(task["file"])
+    if target.is_file():
+        return json.loads(target.read_text())
+    policy = _policy(task["path"])
+    row = run(
+        policy,
+        layout=task["layout"],
+        track=task["track"],
+        seed=task["seed"],
+        form=task["form"],
+        seconds=task["seconds"],
+        horizon=task["horizon"],
+        weights=Weights(**task["weights"]),
+    )
+    row = {"model": task["model"], "policy": task["path"], "policy_sha256": policy.sha256, **row}
+    target.parent.mkdir(parents=True, exist_ok=True)
+    part = target.with_suffix(".part")
+    part.write_text(json.dumps(row, indent=1) + "\n")
+    part.replace(target)
+    return row
+
+
+SUMMARY = (
+    "completion_ratio",
+    "collisions_per_min",
+    "laps",
+    "laps_per_min",
+    "lap_time_mean",
+    "progress_per_metre",
+    "average_speed",
+    "kept_mu",
+    "mean_abs_dsteering",
+)
+
+
+def aggregate(rows: list[dict]) -> list[dict]:
+    """Mean ± (population) std of each summary metric per (model, form), in the rows' order."""
+    cells: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        cells.setdefault((r["model"], r["form"]), []).append(r)
+    out = []
+    for (model, form), runs in cells.items():
+        cell: dict[str, Any] = {"model": model, "form": form, "runs": len(runs)}
+        for name in SUMMARY:
+            values = [float(r[name]) for r in runs if r.get(name) is not None]
+            mean = sum(values) / len(values) if values else math.nan
+            std = math.sqrt(sum((v - mean) ** 2 for v in values) / len(values)) if values else 0
+            cell[name] = {"mean": mean, "std": std}
+        out.append(cell)
+    return out
+
+
+def table(cells: list[dict]) -> str:
+    """The ceiling's table: one row per policy × objective form, mean ± std over the runs."""
+    lines = [
+        "| policy | form | runs | completion | collisions / min | laps | laps / min | "
+        "lap time s | progress / m | avg m/s | μ kept | mean abs Δsteering |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for c in cells:
+
+        def pm(name: str, digits: int, c=c) -> str:
+            v = c[name]
+            return (
+                "—" if math.isnan(v["mean"]) else f"{v['mean']:.{digits}f} ± {v['std']:.{digits}f}"
+            )
+
+        lines.append(
+            f"| {c['model']} | {c['form']} | {c['runs']} | {pm('completion_ratio', 2)} | "
+            f"{pm('collisions_per_min', 1)} | {pm('laps', 1)} | {pm('laps_per_min', 2)} | "
+            f"{pm('lap_time_mean', 1)} | {pm('progress_per_metre', 2)} | "
+            f"{pm('average_speed', 2)} | {pm('kept_mu', 2)} | {pm('mean_abs_dsteering', 3)} |"
+        )
+    return "\n".join(lines)
+
+
+def parse_models(text: str) -> list[tuple[str, str]]:
+    """`demo,weak=path.onnx,other.onnx` → [(label, path)]; a bare path is labelled by its
+    file's stem (or its folder's name for a `policy.onnx`)."""
+    from carrt.shipped import resolve_model
+
+    out = []
+    for item in (s.strip() for s in text.split(",")):
+        if not item:
+            continue
+        label, _, path = item.rpartition("=")
+        path = str(resolve_model(path))  # one line naming the missing file
+        if not label:
+            p = Path(item)
+            label = (
+                item
+                if p.name == item and not p.suffix
+                else (p.parent.name if p.stem == "policy" else p.stem)
+            )
+        out.append((label, path))
+    if not out:
+        raise UserError("--models: give at least one policy (demo, or NAME=PATH.onnx)")
+    return out
+
+
+def parse(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(
+        prog="python -m research.ceiling",
+        description=__doc__.split("\n")[0],
+        epilog="Candidates: " + ", ".join(n for n, _, _ in CANDIDATES) + ".",
+    )
+    p.add_argument("--models", default="demo", help="policies: demo, NAME=PATH.onnx, PATH.onnx")
+    p.add_argument("--forms", default=",".join(FORMS), help=f"objective forms ({', '.join(FORMS)})")
+    p.add_argument("--layout", default="hard")
+    p.add_argument("--tracks", default="200-219", help="validation placements (never 100-199)")
+    p.add_argument("--seeds", default="0,1", help="run seeds (the camera's phase)")
+    p.add_argument("--seconds", type=float, default=30.0, help="simulated s per run")
+    p.add_argument("--horizon", type=int, default=10, help="steps of 100 ms each plan is run")
+    p.add_argument("--out", default="research/runs/ceiling", help="one JSON per run, kept")
+    p.add_argument(
+        "--results", default="", help="results file to write (default: OUT/results.json)"
+    )
+    p.add_argument("--jobs", type=int, default=1, help="worker processes")
+    return p.parse_args(argv)
+
+
+def check(a: argparse.Namespace) -> tuple[list[tuple[str, str]], list[str], list[int], list[int]]:
+    """Everything wrong with the command line as one UserError, before anything runs."""
+    from carrt.layouts import NAMES
+    from carrt.policy import OnnxPolicy
+
+    if a.layout not in NAMES:
+        raise UserError(f"--layout {a.layout}: not a layout ({', '.join(NAMES)})")
+    tracks = parse_int_list(a.tracks, "tracks")
+    if not tracks:
+        raise UserError("--tracks: give at least one placement")
+    if a.layout == "hard" and set(tracks) & EVALUATION_TRACKS:
+        raise UserError(
+            f"--tracks {a.tracks}: the test placements 100-199 are never driven here "
+            "(use validation placements, e.g. 200-219)"
+        )
+    seeds = parse_int_list(a.seeds, "seeds")
+    forms = [f.strip() for f in a.forms.split(",") if f.strip()]
+    unknown = [f for f in forms if f not in FORMS]
+    if unknown or not forms:
+        raise UserError(f"--forms {a.forms}: expected some of {', '.join(FORMS)}")
+    if not seeds:
+        raise UserError("--seeds: give at least one run seed")
+    if not (a.seconds > 0 and math.isfinite(a.seconds)):
+        raise UserError(f"--seconds {a.seconds}: expected a positive number")
+    if a.horizon < 1 or a.jobs < 1:
+        raise UserError("--horizon and --jobs: expected at least 1")
+    models = parse_models(a.models)
+    for _, path in models:
+        OnnxPolicy(path, intra_op_threads=1)  # a broken file: one line now, not in a worker
+    return models, forms, tracks, seeds
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = parse(argv)
+    try:
+        models, forms, tracks, seeds = check(a)
+        weights = Weights.from_training()
+    except UserError as exc:
+        print(f"ceiling: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    out = Path(at_root(a.out))
+    tasks = [
+        {
+            "model": label,
+            "path": path,
+            "layout": a.layout,
+            "track": track,
+            "seed": seed,
+            "form": form,
+            "seconds": a.seconds,
+            "horizon": a.horizon,
+            "weights": weights.__dict__,
+            "file": str(out / label / form / f"h{a.horizon}-{a.layout}{track}-seed{seed}.json"),
+        }
+        for label, path in models
+        for track in tracks
+        for seed in seeds
+        for form in forms
+    ]
+    kept = {t["file"] for t in tasks if Path(t["file"]).is_file()}
+    todo = len(tasks) - len(kept)
+    print(
+        f"ceiling: {len(tasks)} runs ({todo} to drive): {len(models)} policies × "
+        f"{len(forms)} forms × placements {a.tracks} × seeds {a.seeds}, {a.seconds:g} s, "
+        f"H {a.horizon}, {a.jobs} worker(s); runs under {out}",
+        flush=True,
+    )
+    rows, started, driven = [], time.monotonic(), 0
+    pool = ProcessPoolExecutor(a.jobs) if a.jobs > 1 else None
+    try:
+        results = pool.map(run_task, tasks) if pool else map(run_task, tasks)
+        for i, (task, row) in enumerate(zip(tasks, results, strict=True), 1):
+            driven += task["file"] not in kept
+            rows.append(row)
+            eta = (time.monotonic() - started) / driven * (todo - driven) if driven else 0.0
+            print(
+                f"  [{i}/{len(tasks)}] {row['model']} {row['form']:<8} track {row['track']} "
+                f"seed {row['seed']}: completion {row['completion_ratio']:.2f}, "
+                f"{row['collisions_per_min']:.1f} collisions/min, {row['laps']} laps, "
+                f"{row['average_speed']:.2f} m/s (ETA {eta / 60:.0f} min)",
+                flush=True,
+            )
+    finally:
+        if pool:
+            pool.shutdown()
+    results_file = Path(at_root(a.results) if a.results else out / "results.json")
+    write_results(a, rows, weights, results_file)
+    return 0
+
+
+def write_results(a: argparse.Namespace, rows: list[dict], weights: Weights, path: Path) -> None:
+    """The results file: date, command, settings, machine, the table's cells and every run."""
+    from bench.provenance import environment
+
+    cells = aggregate(rows)
+    payload = {
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "command": "python -m research.ceiling " + " ".join(sys.argv[1:]),
+        "config": {
+            "models": a.models,
+            "layout": a.layout,
+            "tracks": a.tracks,
+            "seeds": a.seeds,
+            "seconds": a.seconds,
+            "horizon": a.horizon,
+            "candidates": [list(c) for c in CANDIDATES],
+            "weights": weights.__dict__,
+            "reset_pause_s": RESET_PAUSE_S,
+        },
+        "environment": environment(),
+        "aggregate": cells,
+        "rows": rows,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(payload, indent=1) + "\n")
+    print("\n" + table(cells) + f"\n\nwritten: {path}")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
