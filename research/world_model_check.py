@@ -58,6 +58,8 @@ TARGETS = {"steering_sign_agreement": 0.8, "ordered_right": 0.8, "collision_auro
 # alternative against the plan as the true one does (ties in the truth left out).
 NEAR = ("steer-0.3", "steer+0.3", "lift", "brake", "full")
 FORMS = ("first", "all")
+SHORT = {"steering_sign_agreement": "sign", "ordered_right": "order", "collision_auroc": "AUROC",
+         "rank_correlation": "ρ"}  # fmt: skip
 STOP = "no world model passes: by the issue's stop rule the full study does not run"
 
 
@@ -231,6 +233,24 @@ def data_summary(paths: dict[str, Path]) -> dict:
     return out
 
 
+def by_form(cfg: WorldModelCheckConfig, scored: dict[str, dict]) -> dict[str, dict]:
+    """Per form: each judged number's mean over the seeds, and the rule's verdict on the means
+    (a form passes when its means meet all four targets)."""
+    out = {}
+    for form in cfg.forms:
+        rows = [r for r in scored.values() if r["form"] == form]
+        if not rows:
+            continue
+        means = {}
+        for key in TARGETS:
+            values = [r[key] for r in rows if r[key] is not None and r[key] == r[key]]
+            means[key] = sum(values) / len(values) if values else None
+        meets = {k: v is not None and v >= TARGETS[k] for k, v in means.items()}
+        out[form] = {"seeds": [r["seed"] for r in rows], "mean": means, "meets": meets,
+                     "passes": all(meets.values())}  # fmt: skip
+    return out
+
+
 def cell(values: list) -> str:
     values = [v for v in values if v is not None]
     if not values:
@@ -244,10 +264,12 @@ def cell(values: list) -> str:
 
 def table(cfg: WorldModelCheckConfig, scored: dict[str, dict]) -> str:
     """Markdown: per form, the four judged numbers (mean ± std over seeds) and whether it passes."""
+    forms = by_form(cfg, scored)
     lines = ["| world model | seeds | steering sign agreement (≥ 0.8) | alternatives ordered right "
              "(≥ 0.8) | collision AUROC (≥ 0.9) | rank correlation ρ (≥ 0.6) | steering sign, "
              "centred | speed error m/s (constant) | imagined risk plan / steer +0.6 (true) | "
-             "passes |", "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "passes (means over seeds) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for form in cfg.forms:
         rows = [r for r in scored.values() if r["form"] == form]
         if not rows:
@@ -259,12 +281,14 @@ def table(cfg: WorldModelCheckConfig, scored: dict[str, dict]) -> str:
         risk = [r["risk_plan_vs_steer+0.6"] for r in rows]
         imagined = " / ".join(cell([x["imagined_risk"][i] for x in risk]) for i in (0, 1))
         true = " / ".join(cell([x["true_collision"][i] for x in risk]) for i in (0, 1))
-        passes = sum(r["passes"] for r in rows)
+        verdict = "yes" if forms[form]["passes"] else "no"
+        missed = [k for k, ok in forms[form]["meets"].items() if not ok]
+        verdict += f" (misses {', '.join(SHORT[k] for k in missed)})" if missed else ""
         lines.append(
             f"| {form} | {len(rows)} | {col('steering_sign_agreement')} | {col('ordered_right')} "
             f"| {col('collision_auroc')} | {col('rank_correlation')} | "
             f"{col('steering_sign_agreement_centred')} | {col('speed_mae')} "
-            f"({col('speed_mae_constant')}) | {imagined} ({true}) | {passes}/{len(rows)} |"
+            f"({col('speed_mae_constant')}) | {imagined} ({true}) | {verdict} |"
         )
     return "\n".join(lines)
 
@@ -306,11 +330,12 @@ def main(argv: list[str] | None = None) -> int:
     scored = score_runs(cfg, paths)
     from bench.provenance import environment
 
-    passing = sorted({r["form"] for r in scored.values() if r["passes"]})
+    forms = by_form(cfg, scored)
+    passing = [form for form, f in forms.items() if f["passes"]]
     results = {
         "config": dataclasses.asdict(cfg), "targets": TARGETS, "near_alternatives": NEAR,
         "environment": environment(), "data": data_summary(paths),
-        "wall_s": time.monotonic() - started, "passing_forms": passing,
+        "wall_s": time.monotonic() - started, "passing_forms": passing, "forms": forms,
         "rows": list(scored.values()),
     }  # fmt: skip
     text = table(cfg, scored)

@@ -33,6 +33,8 @@ def test_the_check_trains_and_scores_both_forms_and_resumes(tmp_path, capsys):
     assert results["environment"]["date"] and results["data"]["set"]["starts"] == 2
     for name in ("demos", "drives"):
         assert results["data"][name]["frames"] > 0
+    assert set(results["forms"]) == {"first", "all"}
+    assert results["passing_forms"] == [f for f, v in results["forms"].items() if v["passes"]]
     for row in results["rows"]:
         for key in ("steering_sign_agreement", "ordered_right", "collision_auroc",
                     "rank_correlation"):  # fmt: skip
