@@ -11,8 +11,9 @@ Numbers per run, then mean ± std over every (placement, seed) run:
                      person watching a clock would count them)
   average speed      m/s over driving time (standing crashed and resetting excluded)
   laps               laps completed; metres skipped by auto-resets are not credited
-  laps / min         laps per minute of driving time (the racing number completion cannot
-                     see: it stops at the first failure and is capped at one lap)
+  laps / min         laps per minute of driving time (standing crashed and resetting
+                     excluded, unlike collisions / min): the racing number completion cannot
+                     see, as it stops at the first failure and is capped at one lap
   lap time           mean of the clean laps (no collision, take-over or reset inside), s;
                      runs without a clean lap are left out of its mean (`null` in the JSON)
   progress / m       metres gained along the track per metre driven: 1 on the centerline,
