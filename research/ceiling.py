@@ -495,7 +495,7 @@ def check(a: argparse.Namespace) -> tuple[list[tuple[str, str]], list[str], list
     tracks = parse_int_list(a.tracks, "tracks")
     if not tracks:
         raise UserError("--tracks: give at least one placement")
-    if a.layout == "hard" and set(tracks) & EVALUATION_TRACKS:
+    if set(tracks) & EVALUATION_TRACKS:
         raise UserError(
             f"--tracks {a.tracks}: the test placements 100-199 are never driven here "
             "(use validation placements, e.g. 200-219)"
