@@ -224,9 +224,12 @@ def choose(
 def drive_period(world, steering: float, throttle: float, throttle_now: float, poses: list):
     """One 100 ms command on the driven world, as hold() but through a collision to the period's
     end (the clock runs on while the car stands) and with the pose after each chunk kept for
-    the camera. Returns (throttle reached, a collision happened, a lap was completed, metres of
-    progress beyond MAX_GAIN_PER_METRE × the metres driven: a cut the lap count credits)."""
-    hit = lap = False
+    the camera. Returns (throttle reached, a collision happened, a lap was completed, the
+    period's jump, whether the car left the track's markings during it). The jump is the
+    progress credited beyond MAX_GAIN_PER_METRE × the metres driven: off the markings, a cut
+    across the infield that the lap counter credits; on them, the inside line of a hairpin,
+    whose projection onto the centreline turns faster than the car drives."""
+    hit = lap = off = False
     before, driven = world.progress, 0.0
     for _ in range(round(CONTROL_PERIOD_S / CHUNK_S)):
         throttle_now = min(float(throttle), throttle_now + THROTTLE_RISE_PER_S * CHUNK_S)
@@ -235,10 +238,11 @@ def drive_period(world, steering: float, throttle: float, throttle_now: float, p
         driven += math.hypot(world.car.x - x, world.car.y - y)
         hit |= info.collision
         lap |= info.lap_completed
+        off |= world.off_track
         poses.append((world.time, world.car.x, world.car.y, world.car.yaw))
     del poses[: -round(CONTROL_PERIOD_S / CHUNK_S) - 1]
-    cut = max(0.0, world.progress - before - MAX_GAIN_PER_METRE * driven)
-    return throttle_now, hit, lap, cut
+    jump = max(0.0, world.progress - before - MAX_GAIN_PER_METRE * driven)
+    return throttle_now, hit, lap, jump, off
 
 
 def frame_pose(poses: list, now: float, phase_s: float) -> tuple[float, float, float]:
@@ -290,14 +294,14 @@ def run(
     recorder.record(world)
     poses = [(world.time, world.car.x, world.car.y, world.car.yaw)]
     throttle_now, standing = 0.0, 0
-    cut_m, off_track, driving_steps = 0.0, 0, 0
+    jumps, off_track, driving_steps = [0.0, 0.0], 0, 0  # jumps: [on the markings, off them]
     chosen = np.zeros(len(CANDIDATES), dtype=int)
     d_steer: list[float] = []
     started = time.perf_counter()
     for _ in range(round(seconds / CONTROL_PERIOD_S)):
         if standing > 0:  # the auto-reset's pause: nothing drives
             standing -= 1
-            throttle_now, _, _, _ = drive_period(world, 0.0, 0.0, 0.0, poses)
+            throttle_now, *_ = drive_period(world, 0.0, 0.0, 0.0, poses)
             recorder.record(world, StepInfo(False, "", False), resetting=True)
             continue
         driving_steps += 1
@@ -310,10 +314,12 @@ def run(
             chosen[best] += 1
             d_steer.append(abs(float(plans[best, 0, 0] - plans[0, 0, 0])))
         steering, throttle = plans[best, 0]
-        throttle_now, hit, lap, cut = drive_period(world, steering, throttle, throttle_now, poses)
+        throttle_now, hit, lap, jump, off = drive_period(
+            world, steering, throttle, throttle_now, poses
+        )
         recorder.record(world, StepInfo(hit, "", lap))
-        cut_m += cut
-        off_track += world.off_track
+        jumps[off] += jump
+        off_track += off
         if hit:  # the person lifts the car back on and it stands a moment
             world.reset()
             throttle_now, standing = 0.0, round(RESET_PAUSE_S / CONTROL_PERIOD_S)
@@ -338,8 +344,9 @@ def run(
         "average_speed": m.average_speed,
         "distance": m.distance,
         "driving_time": m.driving_time,
-        "off_track_share": off_track / driving_steps if driving_steps else 0.0,
-        "cut_m": cut_m,
+        "off_track_share": off_track / driving_steps if driving_steps else 0.0,  # steps that left
+        "cut_m": jumps[True],
+        "apex_jump_m": jumps[False],
         "decisions": decisions,
         "kept_mu": float(chosen[0] / decisions) if decisions else 1.0,
         "mean_abs_dsteering": float(np.mean(d_steer)) if d_steer else 0.0,
@@ -394,6 +401,8 @@ SUMMARY = (
     "lap_time_mean",
     "progress_per_metre",
     "average_speed",
+    "off_track_share",
+    "cut_m",
     "kept_mu",
     "mean_abs_dsteering",
 )
@@ -420,8 +429,8 @@ def table(cells: list[dict]) -> str:
     """The ceiling's table: one row per policy × objective form, mean ± std over the runs."""
     lines = [
         "| policy | form | runs | completion | collisions / min | laps | laps / min | "
-        "lap time s | progress / m | avg m/s | μ kept | mean abs Δsteering |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "lap time s | progress / m | avg m/s | off track | cut m | μ kept | mean abs Δsteering |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for c in cells:
 
@@ -435,7 +444,8 @@ def table(cells: list[dict]) -> str:
             f"| {c['model']} | {c['form']} | {c['runs']} | {pm('completion_ratio', 2)} | "
             f"{pm('collisions_per_min', 1)} | {pm('laps', 1)} | {pm('laps_per_min', 2)} | "
             f"{pm('lap_time_mean', 1)} | {pm('progress_per_metre', 2)} | "
-            f"{pm('average_speed', 2)} | {pm('kept_mu', 2)} | {pm('mean_abs_dsteering', 3)} |"
+            f"{pm('average_speed', 2)} | {pm('off_track_share', 2)} | {pm('cut_m', 1)} | "
+            f"{pm('kept_mu', 2)} | {pm('mean_abs_dsteering', 3)} |"
         )
     return "\n".join(lines)
 

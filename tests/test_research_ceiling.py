@@ -140,7 +140,8 @@ def test_a_short_run_writes_a_row_with_every_field(tmp_path, capsys):
     fields = {"model", "policy", "policy_sha256", "track", "seed", "form", "horizon", "seconds",
               "completion_ratio", "collisions", "collisions_per_min", "laps", "laps_per_min",
               "lap_time_mean", "progress_per_metre", "average_speed", "distance", "driving_time",
-              "off_track_share", "cut_m", "decisions", "kept_mu", "mean_abs_dsteering",
+              "off_track_share", "cut_m", "apex_jump_m", "decisions", "kept_mu",
+              "mean_abs_dsteering",
               "throttle_choices", "chosen", "wall_s"}  # fmt: skip
     assert fields <= set(row)
     assert row["decisions"] == 30 and sum(row["chosen"].values()) == 30
