@@ -1,7 +1,7 @@
 """Which world model knows what the actions do? Each form trained on the same drives, each scored
 on the same held-out starts by the counterfactual check (issue 59, item 3).
 
-    python -m research.world_model_check                                  # ~40 min, 1 core
+    python -m research.world_model_check                                  # ~45 min, 1 core
     python -m research.world_model_check --set world_model_steps=1500 --set seeds=0
 
 Why: refinement and planning trust the world model's answer to "what if the car did this
@@ -70,7 +70,7 @@ class WorldModelCheckConfig:
     out: str = "research/runs/world_model_check"  # steps, logs, runs (not in git)
     json: str = "research/results/world_model_check.json"  # the results ("" : OUT's only)
     forms: tuple[str, ...] = FORMS  # training/config.py world_action_inputs; "first" always
-    seeds: tuple[int, ...] = (0, 1)  # training seeds (model init, batch order)
+    seeds: tuple[int, ...] = (0, 1, 2, 3, 4)  # training seeds (model init, batch order)
     profile: str = "cpu"
     layout: str = "hard"
     train_tracks: str = "1000-1039"  # every recording (training placements)
