@@ -140,9 +140,8 @@ def test_a_short_run_writes_a_row_with_every_field(tmp_path, capsys):
     fields = {"model", "policy", "policy_sha256", "track", "seed", "form", "horizon", "seconds",
               "completion_ratio", "collisions", "collisions_per_min", "laps", "laps_per_min",
               "lap_time_mean", "progress_per_metre", "average_speed", "distance", "driving_time",
-              "off_track_share", "cut_m", "apex_jump_m", "decisions", "kept_mu",
-              "mean_abs_dsteering",
-              "throttle_choices", "chosen", "wall_s"}  # fmt: skip
+              "off_track_share", "cut_m", "apex_jump_m", "uncut_laps_per_min", "decisions",
+              "kept_mu", "mean_abs_dsteering", "throttle_choices", "chosen", "wall_s"}  # fmt: skip
     assert fields <= set(row)
     assert row["decisions"] == 30 and sum(row["chosen"].values()) == 30
     assert math.isclose(sum(row["throttle_choices"].values()), 1.0)
@@ -161,6 +160,12 @@ def test_a_short_run_writes_a_row_with_every_field(tmp_path, capsys):
     assert ceiling.main(argv) == 0
     out = capsys.readouterr().out
     assert "(0 to drive)" in out and "99 laps" in out
+
+
+def test_uncut_laps_leave_the_cuts_out():
+    row = {"progress_per_metre": 1.0, "distance": 26.0, "cut_m": 0.0, "driving_time": 30.0}
+    assert ceiling.uncut_laps_per_min(row, 13.0) == pytest.approx(4.0)
+    assert ceiling.uncut_laps_per_min({**row, "cut_m": 13.0}, 13.0) == pytest.approx(2.0)
 
 
 @pytest.mark.parametrize(
