@@ -212,6 +212,33 @@ def score_runs(cfg: WorldModelCheckConfig, paths: dict[str, Path]) -> dict[str, 
     return scored
 
 
+def constant_baselines(data: dict) -> dict[str, float]:
+    """What a model that ignores the frame scores at best: the same answer at every start (the
+    majority sign of the truth), for the two judged numbers where that is possible. A form
+    near these has learnt a track-wide rule ("steering one way is safer"), not the place."""
+    import numpy as np
+
+    from research.variants.counterfactual import GRADIENT_PAIRS, true_objective
+    from training.config import IterateConfig
+
+    names, weights = list(data["meta"]["sequences"]), IterateConfig()
+    truth = true_objective(data, weights.refine_w_speed, weights.refine_w_collision)
+
+    def best_constant(diff) -> float | None:  # None where the truth ties everywhere
+        decided = diff[np.abs(diff) > 1e-6]
+        return float(max((decided > 0).mean(), (decided < 0).mean())) if len(decided) else None
+
+    up, down = GRADIENT_PAIRS["steering"]
+    near = [best_constant(truth[:, names.index(n)] - truth[:, 0]) for n in NEAR if n in names]
+    near = [x for x in near if x is not None]  # left out as the check leaves them out
+    return {
+        "steering_sign_agreement": best_constant(
+            truth[:, names.index(up)] - truth[:, names.index(down)]
+        ),
+        "ordered_right": sum(near) / len(near) if near else None,
+    }
+
+
 def data_summary(paths: dict[str, Path]) -> dict:
     """Episodes, frames and collision-labelled frames of each recording; the set's size."""
     import numpy as np
@@ -332,13 +359,22 @@ def main(argv: list[str] | None = None) -> int:
 
     forms = by_form(cfg, scored)
     passing = [form for form, f in forms.items() if f["passes"]]
+    baselines = {}
+    if paths["set"].is_file():
+        from research.variants.counterfactual import load
+
+        baselines = constant_baselines(load(paths["set"]))
     results = {
         "config": dataclasses.asdict(cfg), "targets": TARGETS, "near_alternatives": NEAR,
         "environment": environment(), "data": data_summary(paths),
         "wall_s": time.monotonic() - started, "passing_forms": passing, "forms": forms,
-        "rows": list(scored.values()),
+        "constant_baselines": baselines, "rows": list(scored.values()),
     }  # fmt: skip
     text = table(cfg, scored)
+    if baselines and None not in baselines.values():
+        text += ("\n\nThe same answer at every start (the truth's majority sign) scores: steering "
+                 f"sign {baselines['steering_sign_agreement']:.2f}, alternatives ordered right "
+                 f"{baselines['ordered_right']:.2f}.")  # fmt: skip
     verdict = f"passes: {', '.join(passing)}" if passing else STOP
     Path(cfg.out, "results.json").write_text(json.dumps(results, indent=1) + "\n")
     Path(cfg.out, "table.md").write_text(text + "\n\n" + verdict + "\n")

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 
 pytest.importorskip("torch")
@@ -49,7 +50,11 @@ def test_the_check_trains_and_scores_both_forms_and_resumes(tmp_path, capsys):
 
         model, _ = ck.load_world_model(tmp_path / "runs" / f"{form}-seed0" / "world_model.pt")
         assert model.action_inputs == form
+    assert set(results["constant_baselines"]) == {"steering_sign_agreement", "ordered_right"}
+    baselines = results["constant_baselines"].values()
+    assert all(v is None or 0.5 <= v <= 1.0 for v in baselines)
     table = (tmp_path / "table.md").read_text()
+    assert ("The same answer at every start" in table) is (None not in baselines)
     assert "| first | 1 |" in table and "| all | 1 |" in table and "| first | 1 |" in printed
     assert (wmc.STOP in table) is (not results["passing_forms"])
     # resumed: every step's marker found, nothing runs again, the same numbers
@@ -67,3 +72,22 @@ def test_a_bad_setting_is_one_line_and_exit_2(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         wmc.main(sets("world_model_stepz=3"))
     assert exc.value.code == 2 and "did you mean world_model_steps" in capsys.readouterr().err
+
+
+def test_constant_baselines_score_the_majority_answer():
+    """Four starts: steering +0.3 crashes at three, steering −0.3 at one; every other
+    alternative is as good as the plan (left out) except full throttle, better at all four."""
+    from carrt.sim.counterfactual import SEQUENCE_NAMES
+
+    n, k, h = 4, len(SEQUENCE_NAMES), 10
+    col = {name: j for j, name in enumerate(SEQUENCE_NAMES)}
+    speed, hit = np.ones((n, k, h), np.float32), np.zeros((n, k, h), np.float32)
+    hit[:3, col["steer+0.3"], 2] = 1.0
+    hit[3, col["steer-0.3"], 2] = 1.0
+    speed[:, col["full"]] = 2.0
+    data = {"true_speed": speed, "true_collision": hit, "mask": np.ones((n, k, h), np.float32),
+            "meta": {"sequences": list(SEQUENCE_NAMES)}}  # fmt: skip
+    base = wmc.constant_baselines(data)
+    assert base["steering_sign_agreement"] == 0.75
+    # steer-0.3 worse at 1 of 1 decided, steer+0.3 at 3 of 3, lift/brake tie, full better 4 of 4
+    assert base["ordered_right"] == pytest.approx(1.0)
