@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import gzip
 import json
 import math
 import random
@@ -506,7 +507,9 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--horizon", type=int, default=10, help="steps of 100 ms each plan is run")
     p.add_argument("--out", default="research/runs/ceiling", help="one JSON per run, kept")
     p.add_argument(
-        "--results", default="", help="results file to write (default: OUT/results.json)"
+        "--results",
+        default="",
+        help="results file to write, gzipped when it ends in .gz (default: OUT/results.json)",
     )
     p.add_argument("--jobs", type=int, default=1, help="worker processes")
     return p.parse_args(argv)
@@ -626,7 +629,11 @@ def write_results(a: argparse.Namespace, rows: list[dict], weights: Weights, pat
         "rows": rows,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(payload, indent=1) + "\n")
+    text = json.dumps(payload, indent=1) + "\n"
+    if path.suffix == ".gz":  # research/results/ keeps its larger files compacted
+        path.write_bytes(gzip.compress(text.encode(), mtime=0))
+    else:
+        path.write_text(text)
     print("\n" + table(cells) + f"\n\nwritten: {path}")
 
 

@@ -19,6 +19,7 @@ from carrt.sim.types import CarState
 from carrt.sim.world import SimWorld
 from research import ceiling
 from research.ceiling import CANDIDATES, Outcome, Weights
+from research.json_file import read_json
 
 W = Weights()
 H = 10
@@ -133,7 +134,7 @@ def test_a_jump_of_the_tracks_projection_earns_nothing():
 def test_a_short_run_writes_a_row_with_every_field(tmp_path, capsys):
     argv = ["--models", "demo", "--forms", "plain,survival", "--tracks", "200", "--seeds", "0",
             "--seconds", "3", "--horizon", "4", "--out", str(tmp_path / "out"),
-            "--results", str(tmp_path / "ceiling.json")]  # fmt: skip
+            "--results", str(tmp_path / "ceiling.json.gz")]  # fmt: skip
     assert ceiling.main(argv) == 0
     row_file = tmp_path / "out" / "demo" / "survival" / "h4-hard200-seed0.json"
     row = json.loads(row_file.read_text())
@@ -146,7 +147,7 @@ def test_a_short_run_writes_a_row_with_every_field(tmp_path, capsys):
     assert row["decisions"] == 30 and sum(row["chosen"].values()) == 30
     assert math.isclose(sum(row["throttle_choices"].values()), 1.0)
     assert row["distance"] > 1.0 and 0.0 < row["completion_ratio"] < 1.0
-    results = json.loads((tmp_path / "ceiling.json").read_text())
+    results = read_json(str(tmp_path / "ceiling.json.gz"), "results file")
     assert {(c["model"], c["form"]) for c in results["aggregate"]} == {
         ("demo", "plain"),
         ("demo", "survival"),
