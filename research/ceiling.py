@@ -256,24 +256,6 @@ def frame_pose(poses: list, now: float, phase_s: float) -> tuple[float, float, f
     return poses[0][1:]
 
 
-def racing(m, recorder: TrajectoryRecorder) -> dict[str, Any]:
-    """Laps per minute of driving, mean clean lap time, progress per metre driven: SimMetrics'
-    own fields where carrt.sim.metrics has them, else computed here the same way."""
-    if hasattr(m, "progress_per_metre"):
-        return {k: getattr(m, k) for k in ("laps_per_min", "lap_time_mean", "progress_per_metre")}
-    a = recorder.arrays()
-    flags = a["collision"] | a["resetting"]
-    steps = np.hypot(np.diff(a["x"], prepend=a["x"][0]), np.diff(a["y"], prepend=a["y"][0]))
-    moving = ~flags & ~np.concatenate(([True], flags[:-1])) & (steps < 0.3)
-    along = float(np.sum(np.diff(a["progress"], prepend=a["progress"][0])[moving]))
-    minutes = m.driving_time / 60.0
-    return {
-        "laps_per_min": m.laps / minutes if minutes > 0 else 0.0,
-        "lap_time_mean": sum(m.lap_times) / len(m.lap_times) if m.lap_times else None,
-        "progress_per_metre": along / m.distance if m.distance > 0 else 0.0,
-    }
-
-
 def uncut_laps_per_min(row: dict, track_length: float) -> float:
     """Laps per minute of driving counted from the metres gained along the track less the cuts
     (`cut_m`): the lap counter credits a cut across the infield, this does not."""
@@ -349,7 +331,9 @@ def run(
         "collisions": m.collisions,
         "collisions_per_min": m.collisions / minutes if minutes > 0 else 0.0,
         "laps": m.laps,
-        **racing(m, recorder),
+        "laps_per_min": m.laps_per_min,
+        "lap_time_mean": m.lap_time_mean,
+        "progress_per_metre": m.progress_per_metre,
         "average_speed": m.average_speed,
         "distance": m.distance,
         "driving_time": m.driving_time,
