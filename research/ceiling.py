@@ -1,8 +1,8 @@
 """The ceiling: model-predictive control with the simulator itself as a perfect world model.
 
-    python -m research.ceiling --models demo,weak=research/runs/weak/policy.onnx \
+    python -m research.ceiling --models weak=research/runs/ceiling/weak/policy.onnx,demo \
         --forms plain,speed,progress,survival --tracks 200-219 --seeds 0,1 --seconds 30 \
-        --out research/runs/ceiling --results research/results/ceiling.json --jobs 1
+        --out research/runs/ceiling/runs --results research/results/ceiling.json.gz --jobs 1
 
 Why: refinement in a learned world model trusts that model's answer to "what if the car did
 this instead?". Before asking how much a learned model gets wrong, this asks how much a model
@@ -88,8 +88,8 @@ TIE_TOLERANCE = 1e-9  # a plan must beat μ by more than this to replace it
 class Weights:
     """The objective forms' constants. The speed form's are training's refinement weights (the
     paper's objective as carrt refines with it); the crash cost of the progress forms is larger
-    than any plan's progress over the horizon (2.5 m/s top speed × 1 s), so no crash is worth
-    its metres; survival discounts each step ahead by `discount` (the first step is the one
+    than any plan's progress over the default horizon (2.5 m/s top speed × 1 s), so no crash
+    is worth its metres; survival discounts each step ahead by `discount` (the first step is the one
     that runs; later ones are replanned) and adds the speed at the horizon's end × `beyond_s`
     for what lies beyond it, when the plan survived."""
 
