@@ -46,6 +46,7 @@ def sim_episodes(tmp_path_factory):
 TRAIN_TEST_MODULES = (
     "test_train_*.py", "test_export.py", "test_research_train_*.py",
     "test_research_redrive.py",  # research.redrive reads training.sim_data's held-out placements
+    "test_research_ceiling.py",  # research.ceiling takes the objective weights from training
     "test_docs_*.py",  # the docs' commands include carrt-train's: checked once, under 3.11
 )  # fmt: skip
 
