@@ -57,7 +57,10 @@ TARGETS = {"steering_sign_agreement": 0.8, "ordered_right": 0.8, "collision_auro
 # right" is the mean over them of the share of starts where the imagined objective orders the
 # alternative against the plan as the true one does (ties in the truth left out).
 NEAR = ("steer-0.3", "steer+0.3", "lift", "brake", "full")
-FORMS = ("first", "all")
+FORMS = ("first", "all", "ground")
+# "ground" is 3b (research/ground_model.py): exact motion, a hazard map on the floor; the others
+# are training/config.py's world_action_inputs of the Reveries-net.
+GROUND = "ground"
 SHORT = {"steering_sign_agreement": "sign", "ordered_right": "order", "collision_auroc": "AUROC",
          "rank_correlation": "ρ"}  # fmt: skip
 STOP = "no world model passes: by the issue's stop rule the full study does not run"
@@ -69,7 +72,7 @@ class WorldModelCheckConfig:
 
     out: str = "research/runs/world_model_check"  # steps, logs, runs (not in git)
     json: str = "research/results/world_model_check.json"  # the results ("" : OUT's only)
-    forms: tuple[str, ...] = FORMS  # training/config.py world_action_inputs; "first" always
+    forms: tuple[str, ...] = FORMS  # "first" always (the paper's)
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)  # training seeds (model init, batch order)
     profile: str = "cpu"
     layout: str = "hard"
@@ -84,6 +87,7 @@ class WorldModelCheckConfig:
     explore_amplitude: float = 0.8
     explore_hold_s: tuple[float, ...] = (0.5, 1.5)
     world_model_steps: int = 3000
+    ground_steps: int = 2000  # the ground model's hazard-map steps (research/ground_model.py)
     counterfactual_tracks: str = "200-219"  # validation placements: never trained on
     counterfactual_starts: int = 5  # per placement
     counterfactual_policy: str = "carrt/assets/demo_policy.onnx"  # whose plans start the sets
@@ -98,7 +102,7 @@ def problems(cfg: WorldModelCheckConfig) -> list[str]:
         out.append(f"forms: {cfg.forms} (each one of {', '.join(FORMS)})")
     if not cfg.seeds:
         out.append("seeds: at least one")
-    for name in ("demo_episodes", "weak_frames", "weak_steps", "world_model_steps",
+    for name in ("demo_episodes", "weak_frames", "weak_steps", "world_model_steps", "ground_steps",
                  "counterfactual_starts", "threads", "jobs"):  # fmt: skip
         if getattr(cfg, name) < 1:
             out.append(f"{name}: {getattr(cfg, name)} (1 or more)")
@@ -156,6 +160,12 @@ def run_steps(cfg: WorldModelCheckConfig, step, paths: dict[str, Path]) -> None:
     for seed in cfg.seeds:
         for form in cfg.forms:
             run = paths[f"{form}-seed{seed}"]
+            if form == GROUND:
+                step(f"train-{form}-seed{seed}", py("-m", "research.ground_model", "train",
+                     "--episodes", str(demos), str(drives), "--out", str(run), "--seed",
+                     str(seed), "--steps", str(cfg.ground_steps), "--threads",
+                     str(cfg.threads)), run / ".done")  # fmt: skip
+                continue
             step(f"train-{form}-seed{seed}", train_cmd(cfg, [demos, drives], run, seed,
                  "imitation_steps=0", f"world_model_steps={cfg.world_model_steps}",
                  "refine_steps=0", "export=false", f"world_action_inputs={form}"),
@@ -194,8 +204,10 @@ def score_runs(cfg: WorldModelCheckConfig, paths: dict[str, Path]) -> dict[str, 
     """Each trained world model scored on the held-out set, by form and seed."""
     import torch
 
+    from research import ground_model
     from research.variants.counterfactual import load, score
     from training import checkpoint as ck
+    from training.config import IterateConfig
 
     torch.set_num_threads(cfg.threads)
     data = load(paths["set"])
@@ -203,10 +215,14 @@ def score_runs(cfg: WorldModelCheckConfig, paths: dict[str, Path]) -> dict[str, 
     for seed in cfg.seeds:
         for form in cfg.forms:
             run = paths.get(f"{form}-seed{seed}")
-            if run is None or not (run / "world_model.pt").is_file():
+            if form == GROUND and run is not None and (run / ".done").is_file():
+                # the refinement weights the Reveries-net runs use (IterateConfig's defaults)
+                full = score(ground_model.load(run / "ground_model.pt"), data, IterateConfig())
+            elif run is not None and (run / "world_model.pt").is_file():
+                world_model, ckpt = ck.load_world_model(run / "world_model.pt")
+                full = score(world_model, data, SimpleNamespace(**ckpt["config"]))
+            else:
                 continue
-            world_model, ckpt = ck.load_world_model(run / "world_model.pt")
-            full = score(world_model, data, SimpleNamespace(**ckpt["config"]))
             scored[f"{form}-seed{seed}"] = {"form": form, "seed": seed, **summary(full),
                                             "check": full}  # fmt: skip
     return scored

@@ -16,25 +16,29 @@ from research import world_model_check as wmc
 
 TINY = ["profile=tiny", "train_tracks=1000", "demo_episodes=2", "weak_frames=10",
         "weak_steps=3", "drive_seconds=4", "world_model_steps=4", "counterfactual_tracks=200",
-        "counterfactual_starts=2", "json=", "seeds=0"]  # fmt: skip
+        "counterfactual_starts=2", "json=", "seeds=0", "ground_steps=3"]  # fmt: skip
 
 
 def sets(*items: str) -> list[str]:
     return [arg for item in items for arg in ("--set", item)]
 
 
-def test_the_check_trains_and_scores_both_forms_and_resumes(tmp_path, capsys):
+def test_the_check_trains_and_scores_every_form_and_resumes(tmp_path, capsys):
     argv = sets(*TINY, f"out={tmp_path}")
     assert wmc.main(argv) == 0
     printed = capsys.readouterr().out
     results = json.loads((tmp_path / "results.json").read_text())
-    assert [(r["form"], r["seed"]) for r in results["rows"]] == [("first", 0), ("all", 0)]
+    assert [(r["form"], r["seed"]) for r in results["rows"]] == [
+        ("first", 0),
+        ("all", 0),
+        ("ground", 0),
+    ]
     assert results["targets"] == wmc.TARGETS
     assert results["config"]["world_model_steps"] == 4
     assert results["environment"]["date"] and results["data"]["set"]["starts"] == 2
     for name in ("demos", "drives"):
         assert results["data"][name]["frames"] > 0
-    assert set(results["forms"]) == {"first", "all"}
+    assert set(results["forms"]) == {"first", "all", "ground"}
     assert results["passing_forms"] == [f for f, v in results["forms"].items() if v["passes"]]
     for row in results["rows"]:
         for key in ("steering_sign_agreement", "ordered_right", "collision_auroc",
@@ -44,18 +48,22 @@ def test_the_check_trains_and_scores_both_forms_and_resumes(tmp_path, capsys):
             assert row["meets"][key] is (value is not None and value >= wmc.TARGETS[key])
         assert row["passes"] is all(row["meets"].values())
         assert row["check"]["starts"] == 2 and row["check"]["sequences_per_start"] == 9
-    # the two forms are different models: the world models' checkpoints say which they are
-    for form in ("first", "all"):
-        from training import checkpoint as ck
+    # the forms are different models: the world models' checkpoints say which they are
+    from research import ground_model
+    from training import checkpoint as ck
 
+    for form in ("first", "all"):
         model, _ = ck.load_world_model(tmp_path / "runs" / f"{form}-seed0" / "world_model.pt")
         assert model.action_inputs == form
+    ground = ground_model.load(tmp_path / "runs" / "ground-seed0" / "ground_model.pt")
+    assert isinstance(ground, ground_model.GroundWorldModel)
     assert set(results["constant_baselines"]) == {"steering_sign_agreement", "ordered_right"}
     baselines = results["constant_baselines"].values()
     assert all(v is None or 0.5 <= v <= 1.0 for v in baselines)
     table = (tmp_path / "table.md").read_text()
     assert ("The same answer at every start" in table) is (None not in baselines)
-    assert "| first | 1 |" in table and "| all | 1 |" in table and "| first | 1 |" in printed
+    assert "| first | 1 |" in table and "| all | 1 |" in table and "| ground | 1 |" in table
+    assert "| first | 1 |" in printed
     assert (wmc.STOP in table) is (not results["passing_forms"])
     # resumed: every step's marker found, nothing runs again, the same numbers
     assert wmc.main(argv) == 0
@@ -68,7 +76,10 @@ def test_the_check_trains_and_scores_both_forms_and_resumes(tmp_path, capsys):
 def test_a_bad_setting_is_one_line_and_exit_2(tmp_path, capsys):
     assert wmc.main(sets(f"out={tmp_path}", "forms=first,every")) == 2
     err = capsys.readouterr().err.strip()
-    assert err == "world_model_check: error: forms: ('first', 'every') (each one of first, all)"
+    assert (
+        err
+        == "world_model_check: error: forms: ('first', 'every') (each one of first, all, ground)"
+    )
     with pytest.raises(SystemExit) as exc:
         wmc.main(sets("world_model_stepz=3"))
     assert exc.value.code == 2 and "did you mean world_model_steps" in capsys.readouterr().err

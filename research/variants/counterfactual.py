@@ -112,7 +112,11 @@ def score(world_model, data: dict, cfg) -> dict:
         actions = torch.from_numpy(data["actions"][i])
         out = world_model.imagine(image, speed, actions, cfg.uncertainty_clip, corrects(cfg))
         imagined_speed[i] = out["speed"].numpy()
-        risk[i] = out["p_collision"].max(dim=1).values.numpy()
+        # a model that says the chance of a crash within the horizon is scored by it; the
+        # Reveries-net's per-step p̂ by its highest step
+        risk[i] = (
+            out["p_crash"] if "p_crash" in out else out["p_collision"].max(dim=1).values
+        ).numpy()
         objective[i] = sequence_objective(out, *weights).numpy()
         for name, term_weights in (("speed", (weights[0], 0.0, 0.0)),
                                    ("collision", (0.0, weights[1], 0.0)),
