@@ -347,6 +347,60 @@ class GroundWorldModel(nn.Module):
         }
 
 
+class PerfectMapModel(GroundWorldModel):
+    """The ground model's motion with a perfect hazard map: the placement's true obstacles and
+    fence (the simulator's geometry) instead of the map learnt from the frame. Evaluation only
+    (research): it says how much of the check the model's motion allows, so what a learnt map
+    misses is told apart from what the motion misses. The hazard of a body point is
+    sigmoid(−d / edge) with d its signed distance to the nearest obstacle or the fence (negative
+    inside): smooth, so the objective has a gradient, and sharp (edge 2 cm).
+
+    It knows each start by its frame: `starts` maps the frame's bytes to (layout, track seed,
+    the start's x, y, yaw), from a counterfactual set with poses (carrt.sim.counterfactual)."""
+
+    def __init__(self, speed: SpeedResponse, data: dict, edge: float = 0.02) -> None:
+        super().__init__(CarGeometry(), MapGrid(), speed)
+        from carrt.sim.track import build_track
+
+        if "pose" not in data:
+            raise UserError("the counterfactual set has no start poses: make it again")
+        layout = data["meta"]["layout"]
+        tracks = {}
+        self.starts = {}
+        for image, (seed, _), pose in zip(data["image"], data["where"], data["pose"], strict=True):
+            seed = int(seed)
+            tracks.setdefault(seed, build_track(layout, seed))
+            self.starts[image.tobytes()] = (tracks[seed], pose)
+        self.edge = edge
+
+    def imagine(self, image, speed, actions, uncertainty_clip=0.0, prior_correction=True):
+        track, pose = self.starts[image[0].numpy().tobytes()]
+        v0 = speed.reshape(-1).to(torch.float32).expand(actions.shape[0])
+        actions = actions.to(torch.float32)
+        steer0 = torch.full((actions.shape[0],), float(pose[3]))
+        speeds, poses = drive(self.geo, self.speed_response, v0, actions, steer0)
+        pts = points_at(poses, self.points)  # (M, H, P, 2) in the start's car frame
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        wx = pose[0] + c * pts[..., 0] - s * pts[..., 1]
+        wy = pose[1] + s * pts[..., 0] + c * pts[..., 1]
+        width, height = track.arena
+        d = torch.minimum(torch.minimum(wx, width - wx), torch.minimum(wy, height - wy))
+        for o in track.obstacles:
+            d = torch.minimum(d, torch.hypot(wx - o.x, wy - o.y) - o.radius)
+        p_here = torch.sigmoid(-d / self.edge).max(dim=2).values
+        alive = torch.cumprod(1 - p_here, dim=1)
+        before = torch.cat([torch.ones_like(alive[:, :1]), alive[:, :-1]], dim=1)
+        zeros = torch.zeros_like(p_here)
+        return {
+            "speed": speeds,
+            "p_collision": before * p_here,
+            "survival": alive,
+            "p_crash": 1 - alive[:, -1],
+            "poses": poses,
+            **{name: zeros for name in ("u_image", "u_speed", "u_collision")},
+        }
+
+
 # ---------------------------------------------------------------------------------- labels
 
 
@@ -515,6 +569,11 @@ def main(argv: list[str] | None = None) -> int:
     c = sub.add_parser("check", help="score a trained ground model on a counterfactual set")
     c.add_argument("--run", required=True)
     c.add_argument("--data", required=True)
+    c.add_argument(
+        "--perfect-map",
+        action="store_true",
+        help="the run's motion with the placement's true hazard map (a ceiling)",
+    )
     a = p.parse_args(argv)
     try:
         if a.cmd == "train":
@@ -529,8 +588,10 @@ def main(argv: list[str] | None = None) -> int:
         from research.world_model_check import summary
         from training.config import IterateConfig
 
-        model = load(Path(a.run) / "ground_model.pt")
-        result = summary(score(model, load_set(a.data), IterateConfig()))
+        model, data = load(Path(a.run) / "ground_model.pt"), load_set(a.data)
+        if a.perfect_map:
+            model = PerfectMapModel(model.speed_response, data)
+        result = summary(score(model, data, IterateConfig()))
         print(json.dumps({k: v for k, v in result.items()}, indent=1))
         return 0
     except UserError as exc:

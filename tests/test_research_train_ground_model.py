@@ -135,7 +135,7 @@ def test_it_trains_on_episodes_and_the_check_scores_it(tmp_path, capsys):
     for argv in (["-m", "training.sim_data", "demos", "--out", str(episodes), "--tracks", "1000",
                   "--layouts", "hard", "--episodes", "2", "--noise", "0.5"],
                  ["-m", "carrt.sim.counterfactual", "--model", policy, "--layout", "hard",
-                  "--tracks", "200", "--starts", "2", "--out", str(data)]):  # fmt: skip
+                  "--tracks", "200", "--starts", "4", "--out", str(data)]):  # fmt: skip
         subprocess.run([sys.executable, *argv], check=True, capture_output=True)
     run = tmp_path / "run"
     assert gm.main(["train", "--episodes", str(episodes), "--out", str(run), "--steps", "3"]) == 0
@@ -144,6 +144,20 @@ def test_it_trains_on_episodes_and_the_check_scores_it(tmp_path, capsys):
     assert gm.main(["check", "--run", str(run), "--data", str(data)]) == 0
     printed = capsys.readouterr().out
     assert '"collision_auroc"' in printed and '"passes"' in printed
+    # the same motion with the placement's true obstacles and fence: a crash it cannot miss
+    from research.variants.counterfactual import load
+
+    cf = load(data)
+    simulated = gm.SpeedResponse(tau=0.25, coef=(5.0, 7.0, 1.88, 0.3))  # carrt/sim/car.py's
+    perfect = gm.PerfectMapModel(simulated, cf)
+    hit = cf["true_collision"].max(axis=2) > 0
+    risk = np.stack([perfect.imagine(torch.from_numpy(cf["image"][i : i + 1]),
+                                     torch.tensor([[float(cf["speed"][i])]]),
+                                     torch.from_numpy(cf["actions"][i]))["p_crash"].detach().numpy()
+                     for i in range(len(hit))])  # fmt: skip
+    assert hit.any() and risk[hit].mean() > 0.7 and risk[~hit].mean() < 0.1
+    assert gm.main(["check", "--run", str(run), "--data", str(data), "--perfect-map"]) == 0
+    assert '"collision_auroc"' in capsys.readouterr().out
     assert gm.main(["check", "--run", str(tmp_path / "nothing"), "--data", str(data)]) == 2
     err = capsys.readouterr().err.strip()
     missing = tmp_path / "nothing" / "ground_model.pt"

@@ -38,8 +38,9 @@ def test_the_check_trains_and_scores_every_form_and_resumes(tmp_path, capsys):
     assert results["environment"]["date"] and results["data"]["set"]["starts"] == 2
     for name in ("demos", "drives"):
         assert results["data"][name]["frames"] > 0
-    assert set(results["forms"]) == {"first", "all", "ground"}
-    assert results["passing_forms"] == [f for f, v in results["forms"].items() if v["passes"]]
+    assert set(results["forms"]) == {"first", "all", "ground", "ground-perfect-map"}
+    candidates = {f: v for f, v in results["forms"].items() if f != "ground-perfect-map"}
+    assert results["passing_forms"] == [f for f, v in candidates.items() if v["passes"]]
     for row in results["rows"]:
         for key in ("steering_sign_agreement", "ordered_right", "collision_auroc",
                     "rank_correlation"):  # fmt: skip
@@ -63,6 +64,7 @@ def test_the_check_trains_and_scores_every_form_and_resumes(tmp_path, capsys):
     table = (tmp_path / "table.md").read_text()
     assert ("The same answer at every start" in table) is (None not in baselines)
     assert "| first | 1 |" in table and "| all | 1 |" in table and "| ground | 1 |" in table
+    assert "| ground-perfect-map | 1 |" in table and "ceiling, not a candidate" in table
     assert "| first | 1 |" in printed
     assert (wmc.STOP in table) is (not results["passing_forms"])
     # resumed: every step's marker found, nothing runs again, the same numbers

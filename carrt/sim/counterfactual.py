@@ -124,7 +124,7 @@ def generate(
     policy: anything with predict(image, speed) → plan with .mu (H, 2) (carrt.policy.OnnxPolicy).
     """
     rng = np.random.default_rng(seed)
-    images, speeds, actions, outcomes, where = [], [], [], [], []
+    images, speeds, actions, outcomes, where, poses = [], [], [], [], [], []
     for track_seed in tracks:
         world = SimWorld(layout=layout, seed=track_seed)
         renderer = Renderer(world.track)
@@ -145,6 +145,7 @@ def generate(
             actions.append(seqs)
             outcomes.append(results)
             where.append((track_seed, world.s))
+            poses.append((car.x, car.y, car.yaw, car.steer, car.motor))
             found += 1
     if not images:
         raise UserError("no start state found: every noisy approach crashed")
@@ -160,6 +161,9 @@ def generate(
         "true_collision": field("collision"),
         "mask": field("mask"),
         "where": np.asarray(where, np.float64),
+        # the start's car state (arena x, y, yaw; wheel angle, motor): evaluation only, e.g. to
+        # score a world model's motion against a perfect map of the placement
+        "pose": np.asarray(poses, np.float64),
     }
 
 
