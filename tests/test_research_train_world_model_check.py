@@ -32,6 +32,7 @@ def test_the_check_trains_and_scores_every_form_and_resumes(tmp_path, capsys):
         ("first", 0),
         ("all", 0),
         ("ground", 0),
+        ("ground-perfect-map", 0),
     ]
     assert results["targets"] == wmc.TARGETS
     assert results["config"]["world_model_steps"] == 4
