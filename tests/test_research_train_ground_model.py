@@ -4,6 +4,7 @@ its objective in steering points away from a hazard, and it trains and is scored
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -164,3 +165,41 @@ def test_it_trains_on_episodes_and_the_check_scores_it(tmp_path, capsys):
     assert err == f"ground_model: error: {missing}: no such ground model file"
     assert gm.main(["train", "--episodes", str(tmp_path / "none"), "--out", str(run)]) == 2
     assert capsys.readouterr().err.startswith("ground_model: error: ")
+
+
+def test_the_ceiling_plans_in_a_learnt_model_and_steers_away_from_its_hazard():
+    """research.ceiling's choice with imagined outcomes: a wall on the left, μ straight ahead at
+    half throttle at 2 m/s: steering left scores below μ, right above, and the plan it picks
+    does not steer into the wall."""
+    from research import ceiling
+
+    model = fixed_hazard_model(1.0)
+    mu = np.tile([[0.0, 0.5]], (10, 1)).astype(np.float32)
+    plans = ceiling.candidates(mu, 10, (-1.0, -1.0), (1.0, 1.0))
+    image = np.zeros((96, 96, 3), np.uint8)
+    best, scores = ceiling.choose_imagined(model, image, 2.0, plans, ceiling.Weights())
+    names = [name for name, _, _ in ceiling.CANDIDATES]
+    assert plans[best, 0, 0] >= 0.0  # right (+) or straight, never towards the left wall
+    assert scores[names.index("steer-0.3")] < scores[0] < scores[names.index("steer+0.3")]
+
+
+def test_the_ceiling_drives_with_a_learnt_world_model(tmp_path, capsys):
+    """`--world-model` scores the plans in a ground model: its runs are labelled with it and
+    kept apart from the simulator's; a form it cannot score and a missing file are one line."""
+    from research import ceiling
+
+    run = tmp_path / "wm"
+    gm.save(gm.GroundWorldModel(gm.CarGeometry(), gm.MapGrid(), gm.SpeedResponse()), run,
+            gm.TrainConfig())  # fmt: skip
+    args = ["--models", "demo", "--tracks", "200", "--seeds", "0", "--seconds", "2",
+            "--out", str(tmp_path / "runs")]  # fmt: skip
+    wm = str(run / "ground_model.pt")
+    assert ceiling.main([*args, "--forms", "plain,speed", "--world-model", wm]) == 0
+    results = json.loads((tmp_path / "runs" / "results.json").read_text())
+    imagined = [r for r in results["rows"] if r["form"] == "speed"]
+    assert imagined and all(r["world_model"].startswith("wm-") for r in imagined)
+    assert "| demo | speed in wm-" in capsys.readouterr().out
+    assert ceiling.main([*args, "--forms", "survival", "--world-model", wm]) == 2
+    assert "the speed and plain forms only" in capsys.readouterr().err
+    assert ceiling.main([*args, "--forms", "speed", "--world-model", str(tmp_path / "x.pt")]) == 2
+    assert capsys.readouterr().err.strip().endswith("x.pt: no such file")
