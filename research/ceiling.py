@@ -220,21 +220,38 @@ def choose(
 
 
 def choose_imagined(
-    world_model, image: np.ndarray, speed: float, plans: np.ndarray, w: Weights
+    world_model, image: np.ndarray, speed: float, plans: np.ndarray, form: str, w: Weights
 ) -> tuple[int, np.ndarray]:
-    """As `choose` with the paper's objective (the speed form), the outcomes imagined by a learnt
-    world model from the camera frame and the speed alone (what the car has): Σ w_speed·v̂ −
-    w_collision·p̂ per plan. How much of `choose`'s gain this recovers is the learnt model's
-    grade."""
+    """As `choose`, the outcomes imagined by a learnt world model from the camera frame and the
+    speed alone (what the car has). `world_model`: (ground model, person's line or None). speed:
+    the paper's Σ w_speed·v̂ − w_collision·p̂; survival: as `score`'s, with the progress along
+    the person's line the frame predicts (research/person_line.py) for the progress along the
+    track, and the imagined chance of surviving each step for the certainty of it. How much of
+    `choose`'s gain this recovers is the learnt model's grade."""
     import torch
 
+    model, line = world_model
     with torch.no_grad():
-        out = world_model.imagine(
-            torch.from_numpy(np.ascontiguousarray(image))[None],
+        frame = torch.from_numpy(np.ascontiguousarray(image))[None]
+        out = model.imagine(
+            frame,
             torch.tensor([[speed]], dtype=torch.float32),
             torch.from_numpy(np.asarray(plans, dtype=np.float32)),
         )
-    scores = (w.w_speed * out["speed"] - w.w_collision * out["p_collision"]).sum(dim=1).numpy()
+        if form == "speed":
+            scores = w.w_speed * out["speed"] - w.w_collision * out["p_collision"]
+            scores = scores.sum(dim=1).numpy()
+        else:
+            from research.person_line import progress_along
+
+            k, h = out["speed"].shape
+            s = progress_along(line(frame).expand(k, -1, -1), out["poses"][..., :2])
+            gains = torch.diff(s, dim=1, prepend=torch.zeros_like(s[:, :1]))
+            alive = torch.cat([torch.ones_like(s[:, :1]), out["survival"][:, :-1]], dim=1)
+            discount = w.discount ** torch.arange(h, dtype=s.dtype)
+            scores = (discount * (gains * alive - w.crash_cost_m * out["p_collision"])).sum(1)
+            beyond = w.discount**h * out["speed"][:, -1] * w.beyond_s * out["survival"][:, -1]
+            scores = (scores + beyond).numpy()
     best = int(np.argmax(scores))
     if scores[best] <= scores[0] + TIE_TOLERANCE:
         best = 0
@@ -300,7 +317,7 @@ def run(
 ) -> dict[str, Any]:
     """One drive of `seconds` on one placement: the metrics and the choice statistics. With a
     `world_model` (research.ground_model's) the plans are scored in its imagination, not in the
-    simulator (the speed form only: a learnt model has no progress along the track yet)."""
+    simulator (speed; survival with the person's line for the progress)."""
     from carrt.sim.render import Renderer
 
     world = SimWorld(layout=layout, seed=track)
@@ -326,7 +343,7 @@ def run(
         plans = candidates(plan.mu, horizon, policy.action_low, policy.action_high)
         best = 0
         if form != "plain" and world_model is not None:
-            best, _ = choose_imagined(world_model, image, float(world.car.v), plans, weights)
+            best, _ = choose_imagined(world_model, image, float(world.car.v), plans, form, weights)
             chosen[best] += 1
             d_steer.append(abs(float(plans[best, 0, 0] - plans[0, 0, 0])))
         elif form != "plain":
@@ -392,8 +409,14 @@ def _world_model(path: str):
     from research import ground_model
 
     if path not in _WORLD_MODELS:
+        from research import person_line
+
         torch.set_num_threads(1)
-        _WORLD_MODELS[path] = ground_model.load(Path(path))
+        line = Path(path).parent / "person_line.pt"
+        _WORLD_MODELS[path] = (
+            ground_model.load(Path(path)),
+            person_line.load(line) if line.is_file() else None,
+        )
     return _WORLD_MODELS[path]
 
 
@@ -546,7 +569,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
         "--world-model",
         default="",
         help="a learnt world model (research.ground_model's ground_model.pt) to score the plans "
-        "in instead of the simulator; the speed form only",
+        "in instead of the simulator: the speed form, and survival with a person_line.pt beside it",
     )
     return p.parse_args(argv)
 
@@ -580,10 +603,12 @@ def check(a: argparse.Namespace) -> tuple[list[tuple[str, str]], list[str], list
     if a.world_model:
         if not Path(a.world_model).is_file():
             raise UserError(f"--world-model {a.world_model}: no such file")
-        if set(forms) - {"plain", "speed"}:
+        line = Path(a.world_model).parent / "person_line.pt"
+        allowed = {"plain", "speed"} | ({"survival"} if line.is_file() else set())
+        if set(forms) - allowed:
             raise UserError(
-                "--world-model: the speed and plain forms only (a learnt model has no progress "
-                "along the track)"
+                f"--world-model: the forms {', '.join(sorted(allowed))} only (survival needs "
+                f"the person's line beside it: {line}; `python -m research.person_line train`)"
             )
     models = parse_models(a.models)
     for _, path in models:

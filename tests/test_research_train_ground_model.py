@@ -177,7 +177,9 @@ def test_the_ceiling_plans_in_a_learnt_model_and_steers_away_from_its_hazard():
     mu = np.tile([[0.0, 0.5]], (10, 1)).astype(np.float32)
     plans = ceiling.candidates(mu, 10, (-1.0, -1.0), (1.0, 1.0))
     image = np.zeros((96, 96, 3), np.uint8)
-    best, scores = ceiling.choose_imagined(model, image, 2.0, plans, ceiling.Weights())
+    best, scores = ceiling.choose_imagined(
+        (model, None), image, 2.0, plans, "speed", ceiling.Weights()
+    )
     names = [name for name, _, _ in ceiling.CANDIDATES]
     assert plans[best, 0, 0] >= 0.0  # right (+) or straight, never towards the left wall
     assert scores[names.index("steer-0.3")] < scores[0] < scores[names.index("steer+0.3")]
@@ -200,6 +202,8 @@ def test_the_ceiling_drives_with_a_learnt_world_model(tmp_path, capsys):
     assert imagined and all(r["world_model"].startswith("wm-") for r in imagined)
     assert "| demo | speed in wm-" in capsys.readouterr().out
     assert ceiling.main([*args, "--forms", "survival", "--world-model", wm]) == 2
-    assert "the speed and plain forms only" in capsys.readouterr().err
+    assert (
+        "the forms plain, speed only (survival needs the person's line" in capsys.readouterr().err
+    )
     assert ceiling.main([*args, "--forms", "speed", "--world-model", str(tmp_path / "x.pt")]) == 2
     assert capsys.readouterr().err.strip().endswith("x.pt: no such file")
