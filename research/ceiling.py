@@ -568,8 +568,9 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument(
         "--world-model",
         default="",
-        help="a learnt world model (research.ground_model's ground_model.pt) to score the plans "
-        "in instead of the simulator: the speed form, and survival with a person_line.pt beside it",
+        help="learnt world models (research.ground_model's ground_model.pt, comma-separated) to "
+        "score the plans in instead of the simulator, each in turn: the speed form, and "
+        "survival with a person_line.pt beside it",
     )
     return p.parse_args(argv)
 
@@ -600,10 +601,10 @@ def check(a: argparse.Namespace) -> tuple[list[tuple[str, str]], list[str], list
         raise UserError(f"--seconds {a.seconds}: expected a positive number")
     if a.horizon < 1 or a.jobs < 1:
         raise UserError("--horizon and --jobs: expected at least 1")
-    if a.world_model:
-        if not Path(a.world_model).is_file():
-            raise UserError(f"--world-model {a.world_model}: no such file")
-        line = Path(a.world_model).parent / "person_line.pt"
+    for world_model in world_models(a):
+        if not Path(world_model).is_file():
+            raise UserError(f"--world-model {world_model}: no such file")
+        line = Path(world_model).parent / "person_line.pt"
         allowed = {"plain", "speed"} | ({"survival"} if line.is_file() else set())
         if set(forms) - allowed:
             raise UserError(
@@ -636,12 +637,12 @@ def main(argv: list[str] | None = None) -> int:
             "seconds": a.seconds,
             "horizon": a.horizon,
             "weights": weights.__dict__,
-            "world_model": a.world_model if form != "plain" else "",
+            "world_model": world_model,
             "file": str(
                 out
                 / label
-                / (form if form == "plain" or not a.world_model else f"{form}-imagined")
-                / (world_model_tag(a.world_model) if form != "plain" else "")
+                / (form if not world_model else f"{form}-imagined")
+                / world_model_tag(world_model)
                 / f"h{a.horizon}-{a.layout}{track}-seed{seed}.json"
             ),
         }
@@ -649,6 +650,8 @@ def main(argv: list[str] | None = None) -> int:
         for track in tracks
         for seed in seeds
         for form in forms
+        # plain drives once; every other form in each learnt model (or in the simulator)
+        for world_model in ([""] if form == "plain" else world_models(a) or [""])
     ]
     kept = {t["file"] for t in tasks if Path(t["file"]).is_file()}
     todo = len(tasks) - len(kept)
@@ -679,6 +682,11 @@ def main(argv: list[str] | None = None) -> int:
     results_file = Path(at_root(a.results) if a.results else out / "results.json")
     write_results(a, rows, weights, results_file)
     return 0
+
+
+def world_models(a: argparse.Namespace) -> list[str]:
+    """--world-model's comma-separated files (none: the simulator scores the plans)."""
+    return [p.strip() for p in a.world_model.split(",") if p.strip()]
 
 
 def world_model_tag(path: str) -> str:

@@ -185,22 +185,30 @@ def test_the_ceiling_plans_in_a_learnt_model_and_steers_away_from_its_hazard():
     assert scores[names.index("steer-0.3")] < scores[0] < scores[names.index("steer+0.3")]
 
 
-def test_the_ceiling_drives_with_a_learnt_world_model(tmp_path, capsys):
-    """`--world-model` scores the plans in a ground model: its runs are labelled with it and
-    kept apart from the simulator's; a form it cannot score and a missing file are one line."""
+def test_the_ceiling_drives_with_learnt_world_models(tmp_path, capsys):
+    """`--world-model A,B` scores the plans in each ground model in turn: their runs are labelled
+    with it and kept apart from the simulator's, plain drives once; a form it cannot score and
+    a missing file are one line."""
     from research import ceiling
 
-    run = tmp_path / "wm"
-    gm.save(gm.GroundWorldModel(gm.CarGeometry(), gm.MapGrid(), gm.SpeedResponse()), run,
-            gm.TrainConfig())  # fmt: skip
+    paths = []
+    for name, seed in (("wm", 0), ("other", 1)):
+        torch.manual_seed(seed)
+        model = gm.GroundWorldModel(gm.CarGeometry(), gm.MapGrid(), gm.SpeedResponse())
+        gm.save(model, tmp_path / name, gm.TrainConfig())
+        paths.append(str(tmp_path / name / "ground_model.pt"))
     args = ["--models", "demo", "--tracks", "200", "--seeds", "0", "--seconds", "2",
             "--out", str(tmp_path / "runs")]  # fmt: skip
-    wm = str(run / "ground_model.pt")
-    assert ceiling.main([*args, "--forms", "plain,speed", "--world-model", wm]) == 0
+    wm = paths[0]
+    assert ceiling.main([*args, "--forms", "plain,speed", "--world-model", ",".join(paths)]) == 0
     results = json.loads((tmp_path / "runs" / "results.json").read_text())
-    imagined = [r for r in results["rows"] if r["form"] == "speed"]
-    assert imagined and all(r["world_model"].startswith("wm-") for r in imagined)
-    assert "| demo | speed in wm-" in capsys.readouterr().out
+    assert sorted(r["world_model"][:3] for r in results["rows"] if r["form"] == "speed") == [
+        "oth",
+        "wm-",
+    ]
+    assert [r["form"] for r in results["rows"]].count("plain") == 1
+    printed = capsys.readouterr().out
+    assert "| demo | speed in wm-" in printed and "| demo | speed in other-" in printed
     assert ceiling.main([*args, "--forms", "survival", "--world-model", wm]) == 2
     assert (
         "the forms plain, speed only (survival needs the person's line" in capsys.readouterr().err
