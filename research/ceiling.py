@@ -80,6 +80,10 @@ CANDIDATES: tuple[tuple[str, float, float], ...] = (
     ("steer+0.3,throttle*1.2", 0.3, 1.2),
 )
 FORMS = ("plain", "speed", "progress", "survival")  # plain: the policy alone, no search
+# With a learnt world model only, a diagnostic: its imagined paths and survival, the progress
+# along them measured on the simulator's track (which a car does not have): what a perfect
+# progress signal would add to the learnt hazard.
+TRUE_PROGRESS = "survival-true-progress"
 MAX_GAIN_PER_METRE = 2.0  # progress counted per metre driven, at most (hold_counted says why)
 TIE_TOLERANCE = 1e-9  # a plan must beat μ by more than this to replace it
 
@@ -219,8 +223,33 @@ def choose(
     return best, scores
 
 
+def true_progress(world: SimWorld, xy: np.ndarray) -> np.ndarray:
+    """(K, H) metres along the simulator's track since the start of imagined paths xy (K, H, 2)
+    in the car's frame, counted as hold_counted counts them: inside the markings only, never
+    more than MAX_GAIN_PER_METRE × the metres driven (a diagnostic: no car knows this)."""
+    from carrt.sim.track import project
+
+    car, track = world.car, world.track
+    c, s = math.cos(car.yaw), math.sin(car.yaw)
+    pts = np.concatenate([np.zeros((len(xy), 1, 2)), xy], axis=1)
+    wx, wy = car.x + c * pts[..., 0] - s * pts[..., 1], car.y + s * pts[..., 0] + c * pts[..., 1]
+    along, lateral, _ = project(track, wx, wy)
+    length = track.length
+    gain = (np.diff(along, axis=1) + length / 2) % length - length / 2
+    driven = np.hypot(np.diff(wx, axis=1), np.diff(wy, axis=1))
+    gain = np.clip(gain, -driven, MAX_GAIN_PER_METRE * driven)
+    inside = np.abs(lateral[:, 1:]) <= track.width / 2
+    return np.cumsum(np.where(inside, gain, 0.0), axis=1)
+
+
 def choose_imagined(
-    world_model, image: np.ndarray, speed: float, plans: np.ndarray, form: str, w: Weights
+    world_model,
+    image: np.ndarray,
+    speed: float,
+    plans: np.ndarray,
+    form: str,
+    w: Weights,
+    world: SimWorld | None = None,
 ) -> tuple[int, np.ndarray]:
     """As `choose`, the outcomes imagined by a learnt world model from the camera frame and the
     speed alone (what the car has). `world_model`: (ground model, person's line or None). speed:
@@ -245,7 +274,11 @@ def choose_imagined(
             from research.person_line import progress_along
 
             k, h = out["speed"].shape
-            s = progress_along(line(frame).expand(k, -1, -1), out["poses"][..., :2])
+            if form == TRUE_PROGRESS:
+                s = torch.from_numpy(true_progress(world, out["poses"][..., :2].double().numpy()))
+                s = s.to(out["speed"].dtype)
+            else:
+                s = progress_along(line(frame).expand(k, -1, -1), out["poses"][..., :2])
             gains = torch.diff(s, dim=1, prepend=torch.zeros_like(s[:, :1]))
             alive = torch.cat([torch.ones_like(s[:, :1]), out["survival"][:, :-1]], dim=1)
             discount = w.discount ** torch.arange(h, dtype=s.dtype)
@@ -343,7 +376,9 @@ def run(
         plans = candidates(plan.mu, horizon, policy.action_low, policy.action_high)
         best = 0
         if form != "plain" and world_model is not None:
-            best, _ = choose_imagined(world_model, image, float(world.car.v), plans, form, weights)
+            best, _ = choose_imagined(
+                world_model, image, float(world.car.v), plans, form, weights, world
+            )
             chosen[best] += 1
             d_steer.append(abs(float(plans[best, 0, 0] - plans[0, 0, 0])))
         elif form != "plain":
@@ -592,7 +627,7 @@ def check(a: argparse.Namespace) -> tuple[list[tuple[str, str]], list[str], list
         )
     seeds = parse_int_list(a.seeds, "seeds")
     forms = [f.strip() for f in a.forms.split(",") if f.strip()]
-    unknown = [f for f in forms if f not in FORMS]
+    unknown = [f for f in forms if f not in FORMS and not (f == TRUE_PROGRESS and a.world_model)]
     if unknown or not forms:
         raise UserError(f"--forms {a.forms}: expected some of {', '.join(FORMS)}")
     if not seeds:
@@ -605,7 +640,7 @@ def check(a: argparse.Namespace) -> tuple[list[tuple[str, str]], list[str], list
         if not Path(world_model).is_file():
             raise UserError(f"--world-model {world_model}: no such file")
         line = Path(world_model).parent / "person_line.pt"
-        allowed = {"plain", "speed"} | ({"survival"} if line.is_file() else set())
+        allowed = {"plain", "speed", TRUE_PROGRESS} | ({"survival"} if line.is_file() else set())
         if set(forms) - allowed:
             raise UserError(
                 f"--world-model: the forms {', '.join(sorted(allowed))} only (survival needs "

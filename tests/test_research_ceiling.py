@@ -193,3 +193,16 @@ def test_bad_model_file_is_one_line(tmp_path, capsys):
     assert ceiling.main(["--models", f"x={bad}", "--tracks", "200", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "not a valid ONNX model" in err
+
+
+def test_true_progress_counts_metres_along_the_track_inside_its_markings():
+    """The diagnostic's progress of imagined paths: 1 m straight on from a place on the track
+    (which bends: a straight metre earns a little less) earns most of a metre, never more; the
+    same metre driven sideways out of the markings earns (almost) nothing."""
+    world = SimWorld(layout="hard", seed=200)
+    world.reset(2.0)
+    ahead = np.stack([np.linspace(0.1, 1.0, 10), np.zeros(10)], axis=1)
+    sideways = np.stack([np.zeros(10), np.linspace(0.1, 1.0, 10)], axis=1)
+    progress = ceiling.true_progress(world, np.stack([ahead, sideways]))
+    assert progress.shape == (2, 10)
+    assert 0.7 < progress[0, -1] <= 1.0 and abs(progress[1, -1]) < 0.3

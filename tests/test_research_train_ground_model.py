@@ -210,8 +210,7 @@ def test_the_ceiling_drives_with_learnt_world_models(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "| demo | speed in wm-" in printed and "| demo | speed in other-" in printed
     assert ceiling.main([*args, "--forms", "survival", "--world-model", wm]) == 2
-    assert (
-        "the forms plain, speed only (survival needs the person's line" in capsys.readouterr().err
-    )
+    err = capsys.readouterr().err
+    assert "the forms plain, speed, survival-true-progress only (survival needs the person" in err
     assert ceiling.main([*args, "--forms", "speed", "--world-model", str(tmp_path / "x.pt")]) == 2
     assert capsys.readouterr().err.strip().endswith("x.pt: no such file")
