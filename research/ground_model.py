@@ -583,9 +583,9 @@ def main(argv: list[str] | None = None) -> int:
                                                        threads=a.threads))  # fmt: skip
             Path(a.out, ".done").touch()
             return 0
+        from research.check_summary import summary
         from research.variants.counterfactual import load as load_set
         from research.variants.counterfactual import score
-        from research.world_model_check import summary
         from training.config import IterateConfig
 
         model, data = load(Path(a.run) / "ground_model.pt"), load_set(a.data)
