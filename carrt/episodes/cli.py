@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from carrt.episodes.reader import in_order, list_episodes, read_episode
-from carrt.errors import UserError
+from carrt.errors import EXIT_USAGE, UserError
 
 # carrt.episodes.contact_sheet imports OpenCV, which every `carrt` command would pay for at start-up
 # if it were imported here: the CLI builds all parsers on every run.
@@ -104,14 +105,17 @@ def run_show(args: argparse.Namespace) -> int:
     summary = summarize(ep)
     if args.json:
         print(json.dumps(summary, indent=2))
-        return 0
-    print(format_summary(summary))
-    if args.meta:
-        meta = {k: v for k, v in ep.meta.items() if k != "format"}
-        print("metadata:")
-        print(json.dumps(meta, indent=2, default=str))
     else:
-        print("(metadata: --meta)")
+        print(format_summary(summary))
+        if args.meta:
+            meta = {k: v for k, v in ep.meta.items() if k != "format"}
+            print("metadata:")
+            print(json.dumps(meta, indent=2, default=str))
+        else:
+            print("(metadata: --meta)")
+    if ep.damage is not None:  # damage is not a torn tail: the run says so and fails
+        print(f"carrt: error: {ep.damage.describe(ep.path)}", file=sys.stderr)
+        return EXIT_USAGE
     return 0
 
 

@@ -2,8 +2,11 @@
 
 The reader never writes. It trusts the steps that `synced.json` says were durable and checks
 each record after that (magic, record number, CRC over record and frame), stopping at the first
-that fails: that is where the power went. Collision labels are derived here, from the recorded
-flags and the end reason, so nothing on disk is ever rewritten after the fact.
+that fails: that is where the power went. With `verify_all` it checks the durable steps too, and
+a record that fails there is not a cut but damage (a flipped bit on disk, a bad copy): the
+episode says so (`Episode.damage`: which step, which file, how many intact steps follow) instead
+of passing it off as a torn tail. Collision labels are derived here, from the recorded flags and
+the end reason, so nothing on disk is ever rewritten after the fact.
 """
 
 from __future__ import annotations
@@ -24,6 +27,22 @@ from carrt.interfaces import IMAGE_SHAPE, Mode
 DRIVING = (int(Mode.MANUAL), int(Mode.AUTO))
 
 
+@dataclass(frozen=True)
+class Damage:
+    """A step inside the region the writer had made durable that fails its checks."""
+
+    step: int  # the first damaged step; the episode is read up to it
+    durable: int  # steps the writer had synced (or closed the episode with)
+    where: str  # the file(s) at fault
+    intact_after: int  # later durable steps that pass their own checks (salvageable)
+
+    def describe(self, path: Path) -> str:
+        return (
+            f"{path}: corrupted at step {self.step} of the {self.durable} written durably "
+            f"({self.where}); reading stops there; {self.intact_after} intact steps after it"
+        )
+
+
 @dataclass
 class Episode:
     """One episode as read: `frames[i]` is the image of `steps[i]`; `collision[i]` its label c."""
@@ -34,6 +53,7 @@ class Episode:
     steps: np.ndarray  # structured (N,), dtype from meta.json
     collision: np.ndarray  # uint8 (N,)
     torn: bool  # bytes after the last valid step were ignored
+    damage: Damage | None = None  # verify_all found damage inside the durable steps
 
     @property
     def name(self) -> str:
@@ -103,11 +123,33 @@ def read_episode(path: str | os.PathLike, *, verify_all: bool = False) -> Episod
     trusted = 0 if verify_all else min(_synced(path), candidates)
     n = trusted + _valid_prefix(raw, frames, trusted, dtype) if candidates else 0
 
+    damage = _damage(path, meta, raw, frames, n, dtype) if verify_all else None
     steps = raw[:n] if raw is not None else np.zeros(0, dtype=dtype)
     frames = frames[:n]
     torn = steps_size != n * dtype.itemsize or frames_size != n * fmt.FRAME_BYTES
     collision = collision_labels(steps, end_reason=(meta.get("end") or {}).get("reason"))
-    return Episode(path, meta, frames, steps, collision, torn)
+    return Episode(path, meta, frames, steps, collision, torn and damage is None, damage)
+
+
+def _damage(path: Path, meta: dict, raw, frames, n: int, dtype: np.dtype) -> Damage | None:
+    """Damage when the whole records read (n) stop short of the steps the writer made durable:
+    those synced, or, for an episode closed cleanly, every step it counted."""
+    durable = _synced(path)
+    if meta.get("end"):
+        durable = max(durable, int((meta.get("counts") or {}).get("steps") or 0))
+    if n >= durable:
+        return None
+    have = 0 if raw is None else len(raw)
+    if n >= have:  # the files end before the durable steps do
+        return Damage(n, durable, f"{fmt.STEPS} and {fmt.FRAMES} end at step {have}", 0)
+    record = raw[n]
+    if record["magic"] != fmt.MAGIC or record["seq"] != n:
+        where = f"{fmt.STEPS}: record {n}'s header"
+    else:
+        where = f"{fmt.STEPS} record {n} or its frame in {fmt.FRAMES}: CRC mismatch"
+    later = range(n + 1, min(durable, have))
+    intact = sum(1 for i in later if _valid_prefix(raw[: i + 1], frames, i, dtype) == 1)
+    return Damage(n, durable, where, intact)
 
 
 def _size(path: Path) -> int:

@@ -7,6 +7,7 @@ time. Numpy only, so the car lists its episodes without OpenCV.
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -40,12 +41,14 @@ def summarize(ep: Episode) -> dict[str, Any]:
         "dropped": counts.get("dropped"),
         "end_reason": ep.end_reason,
         "torn_tail": ep.torn,
+        "damage": None if ep.damage is None else asdict(ep.damage),
         "model_sha256": model.get("sha256"),
     }
 
 
 def format_summary(summary: dict[str, Any]) -> str:
     dropped = "unknown (no end metadata)" if summary["dropped"] is None else summary["dropped"]
+    damage = summary.get("damage")
     lines = [
         f"episode        {summary['name']}  ({summary['path']})",
         f"recorded by    {summary['command'] or '?'} at {summary['start'] or '?'}",
@@ -58,7 +61,9 @@ def format_summary(summary: dict[str, Any]) -> str:
         f"laps marked    {summary['laps_marked']}",
         f"dropped        {dropped}",
         f"end            {summary['end_reason']}"
-        + ("  (torn tail ignored)" if summary["torn_tail"] else ""),
+        + ("  (torn tail ignored)" if summary["torn_tail"] else "")
+        + (f"  (CORRUPTED at step {damage['step']}: {damage['where']})" if damage else "")
+        + ("  (empty: no step was written before the run ended)" if not summary["frames"] else ""),
         f"model          {summary['model_sha256'] or '-'}",
     ]
     return "\n".join(lines)
