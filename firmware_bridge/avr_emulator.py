@@ -24,6 +24,8 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+from firmware_bridge.port_lock import PortLock
+
 F_CPU = 16_000_000
 CYCLES_PER_US = F_CPU // 1_000_000
 REPO = Path(__file__).resolve().parents[1]
@@ -127,6 +129,7 @@ class AvrEmulator:
         if port_path is None:
             self._own_dir = tempfile.TemporaryDirectory(prefix="carrt-avr-")
             port_path = Path(self._own_dir.name) / "ttyAVR0"
+        self._port_lock = PortLock(port_path)  # a second board on this path stops here
         args = [str(EMULATOR), str(elf), "--link", str(port_path)]
         if eeprom_path is not None:
             args += ["--eeprom", str(eeprom_path)]
@@ -142,7 +145,11 @@ class AvrEmulator:
             text=True,
             bufsize=1,
         )
-        self.port = self._wait_ready()
+        try:
+            self.port = self._wait_ready()
+        except BaseException:
+            self._port_lock.release()
+            raise
 
     def _wait_ready(self) -> str:
         timer = threading.Timer(READY_TIMEOUT_S, self._proc.kill)
@@ -238,6 +245,7 @@ class AvrEmulator:
         for stream in (self._proc.stdin, self._proc.stdout, self._stderr):
             if stream is not None:
                 stream.close()
+        self._port_lock.release()
         if self._own_dir is not None:
             self._own_dir.cleanup()
             self._own_dir = None

@@ -29,6 +29,7 @@ from pathlib import Path
 from firmware_bridge.drivetrain import Plant, WheelPlant
 from firmware_bridge.messages import Reason, State
 from firmware_bridge.native import FirmwareBuildError, FirmwareCore
+from firmware_bridge.port_lock import PortLock
 
 TICK_S = 0.001  # the core is ticked at about 1 kHz, like an Arduino loop()
 
@@ -68,6 +69,7 @@ class VirtualBoard:
             self._own_dir = tempfile.TemporaryDirectory(prefix="carrt-vboard-")
             port_path = Path(self._own_dir.name) / "ttyCARRT0"
         self.port = str(port_path)
+        self._port_lock = PortLock(self.port)  # a second board on this path stops here
         self.boot_count = 0
         self.bytes_dropped = 0  # board → host bytes lost because nobody was reading
         self.on_state_change: Callable[[float, State, Reason], None] | None = None
@@ -246,6 +248,7 @@ class VirtualBoard:
             if self.storage_path is not None:
                 self.storage_path.write_bytes(self._core.storage)
         self.pull_cable()
+        self._port_lock.release()
         if self._own_dir is not None:
             self._own_dir.cleanup()
             self._own_dir = None
