@@ -152,7 +152,7 @@ def test_more_placements_than_a_worker_runs_all_finish(tmp_path, monkeypatch):
     gh-115634; the take-over recording stopped forever after 100 placements)."""
     monkeypatch.setattr(sim_data, "TASKS_PER_WORKER", 2)
     jobs = [
-        sim_data.Job(("--version",), tmp_path / f"{i}.log", tmp_path / f".done-{i}")
+        sim_data.Job(("--version",), tmp_path / f"{i}.log", tmp_path / f".done-{i}", tmp_path, i)
         for i in range(7)
     ]
     sim_data.run_jobs(jobs, 2, "test")

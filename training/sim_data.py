@@ -17,16 +17,25 @@ Only episodes are training data, as on a real car; the simulator's saved traject
 (sim-runs/) are for evaluation.
 
 Runs go to a process pool (one process per core); a finished placement leaves a marker, so an
-interrupted call resumes where it stopped. Placements must not overlap the evaluation ones
-(the `hard` layout's 100-199): `parse_tracks` refuses them.
+interrupted call resumes where it stopped. Each placement records into its own hidden staging
+folder (`.partial-TRACK`) and is published into OUT only when it finished (renamed to
+`.complete-TRACK`, its episodes moved in, the marker written: every step safe to repeat), so an
+interrupted placement never leaves episodes beside the ones its rerun records. Ctrl-C, SIGINT or
+SIGTERM (to the main process or the whole group) ends the call within seconds in one line: the
+workers ignore the interrupt and are ended by the main process. Placements must not overlap
+the evaluation ones (the `hard` layout's 100-199): `parse_tracks` refuses them.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import io
 import json
+import os
+import shutil
+import signal
 import sys
 import textwrap
 from concurrent.futures import as_completed
@@ -47,13 +56,71 @@ EVALUATION_TRACKS = frozenset(range(100, 200))
 TASKS_PER_WORKER = 25  # placements a worker process runs before a fresh pool replaces it
 
 
+EXIT_INTERRUPTED = 130  # the shell's code for a command ended by SIGINT
+
+
 @dataclass(frozen=True)
 class Job:
-    """One placement's recording: the carrt argv, where it logs, and its done-marker."""
+    """One placement's recording: the carrt argv (recording into `staging`), where it logs,
+    its done-marker and the folder it is published into."""
 
     argv: tuple[str, ...]
     log: Path
     marker: Path
+    out: Path
+    track: int
+
+    @property
+    def staging(self) -> Path:
+        return self.out / f".partial-{self.track}"
+
+    @property
+    def complete(self) -> Path:
+        return self.out / f".complete-{self.track}"
+
+
+def staging_of(out: Path, track: int) -> Path:
+    return out / f".partial-{track}"
+
+
+def publish(job: Job) -> None:
+    """A finished placement into OUT; each step can be repeated after a kill at any point: the
+    staging folder is renamed (from then on the attempt counts), its entries are moved in
+    (folders such as sim-runs/ merged), then the marker is written."""
+    if job.staging.exists():
+        os.replace(job.staging, job.complete)
+    if job.complete.exists():
+        _merge(job.complete, job.out)
+        shutil.rmtree(job.complete)
+    job.marker.touch()
+
+
+def _merge(src: Path, dst: Path) -> None:
+    for entry in sorted(src.iterdir()):
+        target = dst / entry.name
+        if (entry / "meta.json").exists():
+            _move_episode(entry, dst)
+        elif entry.is_dir() and target.is_dir():
+            _merge(entry, target)
+            entry.rmdir()
+        else:
+            os.replace(entry, target)
+
+
+def _move_episode(episode: Path, dst: Path) -> None:
+    """Episodes of placements recorded side by side can share a name (the second they began):
+    the next free serial of the same second, as the writer itself picks one; a rename onto an
+    existing episode fails, so two workers publishing at once cannot take the same name."""
+    stem = episode.name.rsplit("-", 1)[0]
+    names = [episode.name] + [f"{stem}-{n:03d}" for n in range(1000)]
+    for name in names:
+        try:
+            os.rename(episode, dst / name)
+            return
+        except OSError as exc:
+            if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY):
+                raise
+    raise UserError(f"{dst}: no free episode name for {episode.name}")
 
 
 def parse_tracks(text: str) -> list[int]:
@@ -86,9 +153,10 @@ def demo_jobs(
         argv = ("teleop", "--sim", "--expert", "auto", "--record", "--random-start",
                 "--expert-noise", str(noise), "--expert-noise-tau", str(noise_tau),
                 "--seed", str(track), "--layout", layout, "--track-seed", str(track),
-                "--episodes", str(episodes), "--laps", "1", "--out", str(out),
+                "--episodes", str(episodes), "--laps", "1", "--out", str(staging_of(out, track)),
                 "--duration", "100000")  # fmt: skip
-        jobs.append(Job(argv, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}"))
+        jobs.append(Job(argv, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}",
+                        out, track))  # fmt: skip
     return jobs
 
 
@@ -125,8 +193,9 @@ def drive_jobs(
         argv = ("drive", "--sim", "--autopilot", *take_over, "--model", str(model),
                 "--record", "--seed", str(track + seed_offset), "--layout", layout,
                 "--track-seed", str(track),
-                "--out", str(out), "--duration", str(seconds))  # fmt: skip
-        jobs.append(Job(argv, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}"))
+                "--out", str(staging_of(out, track)), "--duration", str(seconds))  # fmt: skip
+        jobs.append(Job(argv, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}",
+                        out, track))  # fmt: skip
     return jobs
 
 
@@ -162,6 +231,8 @@ def _run_job(job: Job) -> tuple[Job, int]:
     from carrt.cli import main as carrt
 
     job.log.parent.mkdir(parents=True, exist_ok=True)
+    if job.staging.exists():  # an interrupted attempt's partial output: it starts again
+        shutil.rmtree(job.staging)
     buffer = io.StringIO()
     with contextlib.redirect_stdout(buffer), contextlib.redirect_stderr(buffer):
         try:
@@ -170,13 +241,24 @@ def _run_job(job: Job) -> tuple[Job, int]:
             code = int(exc.code or 0)
     job.log.write_text(buffer.getvalue())
     if code == 0:
-        job.marker.touch()
+        publish(job)
     return job, code
+
+
+class Interrupted(Exception):
+    """Ctrl-C, SIGINT or SIGTERM: the call ends, the finished placements kept."""
+
+
+def _interrupt(signum, frame) -> None:
+    raise Interrupted(signal.Signals(signum).name)
 
 
 def run_jobs(jobs: list[Job], jobs_at_once: int, what: str) -> None:
     """Every job not yet done, `jobs_at_once` processes at a time, with a progress bar; a
     failed placement is named with its log and ends the call (the rest keep their markers)."""
+    for job in jobs:  # a placement whose publication was interrupted: finish it
+        if not job.marker.exists() and job.complete.exists():
+            publish(job)
     todo = [job for job in jobs if not job.marker.exists()]
     if not todo:
         return
@@ -188,17 +270,35 @@ def run_jobs(jobs: list[Job], jobs_at_once: int, what: str) -> None:
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=what, unit="placement")
     chunk = jobs_at_once * TASKS_PER_WORKER
     for first in range(0, len(todo), chunk):
-        with worker_pool(jobs_at_once, "forkserver") as pool:
+        pool = worker_pool(jobs_at_once, "forkserver", ignore_interrupts=True)
+        try:
             futures = [pool.submit(_run_job, job) for job in todo[first : first + chunk]]
             for future in as_completed(futures):
                 job, code = future.result()
                 bar.update()
                 if code != 0:
                     failed.append((job, code))
+        except (KeyboardInterrupt, Interrupted):
+            bar.close()
+            end_workers(pool)
+            done = sum(job.marker.exists() for job in jobs)
+            raise Interrupted(f"{done} of {len(jobs)} placements done") from None
+        pool.shutdown()
     bar.close()
     if failed:
         job, code = failed[0]
         raise UserError(f"{len(failed)} placement(s) failed, e.g. exit {code}: see {job.log}")
+
+
+def end_workers(pool) -> None:
+    """Cancel what has not started and end the running workers now (they ignore SIGINT): their
+    placements' staging folders are removed when they run again."""
+    processes = list(getattr(pool, "_processes", {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        process.terminate()
+    for process in processes:
+        process.join(timeout=5.0)
 
 
 def count_frames(*dirs: Path) -> int:
@@ -272,6 +372,7 @@ def main(argv: list[str] | None = None) -> int:
                 help="a `carrt drive --set` for every placement, e.g. noise.amplitude=0.8",
             )  # fmt: skip
     args = parser.parse_args(argv)
+    previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         out = Path(args.out)
         tracks = parse_tracks(args.tracks)
@@ -296,6 +397,12 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as exc:
         print(f"sim_data: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except (KeyboardInterrupt, Interrupted) as exc:
+        done = f": {exc}" if str(exc) and not str(exc).startswith("SIG") else ""
+        print(f"sim_data: interrupted{done}; the same command resumes", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return 0
 
 

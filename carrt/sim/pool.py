@@ -28,11 +28,23 @@ def limit_worker_threads() -> None:
     threadpool_limits(limits=1)
 
 
-def worker_pool(jobs: int, start_method: str) -> ProcessPoolExecutor:
+def _worker_ignoring_interrupts() -> None:
+    """In a pool worker whose caller handles Ctrl-C: SIGINT to the process group must not
+    print a traceback per worker; the caller ends the workers itself."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    limit_worker_threads()
+
+
+def worker_pool(
+    jobs: int, start_method: str, ignore_interrupts: bool = False
+) -> ProcessPoolExecutor:
     """`jobs` processes started by `start_method`, each limited to one math thread.
 
     An executor, not multiprocessing.Pool: a worker that dies mid-run (a crash in a native
     library) breaks it with an error (BrokenProcessPool) instead of leaving the caller waiting
     forever."""
     context = multiprocessing.get_context(start_method)
-    return ProcessPoolExecutor(jobs, mp_context=context, initializer=limit_worker_threads)
+    init = _worker_ignoring_interrupts if ignore_interrupts else limit_worker_threads
+    return ProcessPoolExecutor(jobs, mp_context=context, initializer=init)
