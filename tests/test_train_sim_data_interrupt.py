@@ -59,7 +59,7 @@ def test_an_interrupt_ends_it_in_one_line_and_a_rerun_records_the_same(
         os.kill(proc.pid, sig)
     else:
         os.killpg(proc.pid, sig)
-    stdout, stderr = proc.communicate(timeout=30)
+    _, stderr = proc.communicate(timeout=30)
     assert time.monotonic() - sent < 10
     assert proc.returncode == 130
     lines = [line for line in stderr.splitlines() if line.strip() and "placement/s" not in line]
