@@ -166,6 +166,9 @@ class EpisodesConfig:
     sync_every_s: float = opt(
         1.0, "fsync period: a power cut loses at most this much", lo=0.1, hi=10.0
     )
+    min_free_minutes: float = opt(
+        1.0, "recording refuses to start with room for fewer minutes than this", lo=0.1, hi=600.0
+    )
 
 
 @dataclass

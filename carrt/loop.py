@@ -333,10 +333,22 @@ class ControlLoop:
                 self.summary.recorded_steps += 1
             else:
                 self.summary.dropped_steps += 1
+                self._write_failed(getattr(sink, "error", None))
         if rule.should_end(decision.mode):
             sink.end(self._end_reason(decision.mode))
             rule.recording = False
             self._collision_ended = False
+
+    def _write_failed(self, error: str | None) -> None:
+        """The disk is full (or failing): said at once and loudly, whatever the log level, and
+        the session ends through the normal shutdown (the car disarmed and stopped; the writer
+        already closed the episode, readable up to its last whole step). Driving on would
+        record nothing and nobody would know."""
+        if error is None or self.summary.write_error is not None:
+            return
+        self.summary.write_error = error
+        LOG.error(f"RECORDING FAILED: {error}; stopping the car and the session")
+        self.stop_event.set()
 
     def _step(self, tick: Tick) -> Step:
         decision, joystick, telemetry, plan = (tick.decision, tick.joystick, tick.telemetry,

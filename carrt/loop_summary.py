@@ -33,6 +33,7 @@ class LoopSummary:
     episodes: int = 0
     recorded_steps: int = 0
     dropped_steps: int = 0
+    write_error: str | None = None  # the episode writer's one line when recording failed
     modes_s: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -59,6 +60,8 @@ class LoopSummary:
             f"{self.laps}, e-stops {self.estops}, episodes "
             f"{self.episodes}, steps recorded {self.recorded_steps}, dropped {self.dropped_steps}"
         )
+        if self.write_error:
+            lines.append(f"  RECORDING FAILED: {self.write_error}")
         return "\n".join(lines)
 
     def to_dict(self) -> dict[str, Any]:

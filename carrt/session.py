@@ -24,6 +24,7 @@ from typing import Any
 from carrt import __version__, layouts, rigs
 from carrt import config as car_config
 from carrt.arg_types import finite_non_negative
+from carrt.disk_space import check_room
 from carrt.errors import UserError
 from carrt.progress import recording_bar
 from firmware_bridge.link import BoardLink, LinkError
@@ -230,7 +231,10 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             )
 
         sink = None
-        if args.record:
+        if args.record:  # before the car moves: a disk without room refuses here
+            room = check_room(config.episodes.dir, config.loop.rate_hz,
+                              config.episodes.min_free_minutes)  # fmt: skip
+            LOG.info(room)
             sink = EpisodeWriter(
                 config.episodes.dir,
                 queue_steps=config.episodes.queue_steps,
@@ -282,12 +286,23 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
         with recording_bar(loop, enabled=args.record):
             summary = loop.run()
     print(summary.render())
-    if rig.finish is not None:
-        rig.finish(summary)
-    if args.summary_json:
-        Path(args.summary_json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
+    try:  # the simulator's run files and the summary: a full disk here is one line too
+        if rig.finish is not None:
+            rig.finish(summary)
+        if args.summary_json:
+            Path(args.summary_json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
+    except OSError as exc:
+        if summary.write_error is None:
+            raise UserError(
+                f"could not save the run's files: {exc.strerror} ({exc.filename})"
+            ) from None
     if link.error is not None:
         raise link.error
+    if summary.write_error is not None:
+        raise UserError(
+            f"recording failed: {summary.write_error}; the episodes written before it are whole "
+            "(carrt episodes show --verify)"
+        )
     # Ctrl-C ends a drive cleanly (summary, episodes closed, car stopped), and still exits as
     # every other command stopped by a signal does: 128 + the signal (130 for Ctrl-C).
     return 128 + stopped_by[0] if stopped_by else 0
