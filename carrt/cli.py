@@ -9,6 +9,7 @@ Jetson should not wait for onnxruntime).
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import os
@@ -21,6 +22,8 @@ from carrt.errors import EXIT_USAGE, UserError
 from firmware_bridge.avr_emulator import AvrEmulatorError
 from firmware_bridge.link import LinkError
 from firmware_bridge.native import FirmwareBuildError
+
+DISK_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}  # a full disk, quota or file-size limit
 
 EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE  # what a shell reports for a tool its reader closed
 
@@ -143,6 +146,13 @@ def main(argv: list[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
+    except OSError as exc:
+        if exc.errno not in DISK_FULL:
+            raise
+        # any writer of any command (a report, a video, the simulator's run files): one line
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"carrt {args.command}: error: disk full: {exc.strerror}{where}", file=sys.stderr)
+        return EXIT_USAGE
 
 
 if __name__ == "__main__":

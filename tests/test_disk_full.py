@@ -77,3 +77,18 @@ def test_room_is_counted_in_minutes_of_recording(tmp_path):
     assert check_room(tmp_path, 10, 0.1).startswith(f"recording into {tmp_path}: room for about")
     with pytest.raises(UserError, match=r"under the 1e\+09 min floor"):
         check_room(tmp_path, 10, 1e9)
+
+
+def test_every_other_writer_ends_in_one_line_on_a_full_disk(tmp_path):
+    """A video of an episode into a filesystem already full: `disk full`, one line, exit 2."""
+    episodes = tmp_path / "episodes"
+    subprocess.run([*CARRT, "teleop", "--sim", "--expert", "auto", "--record", "--out",
+                    str(episodes), "--duration", "3"], check=True, capture_output=True)  # fmt: skip
+    done = _in_small_filesystem(tmp_path, textwrap.dedent(f"""
+        dd if=/dev/zero of=$SMALL/fill bs=64k count=100 2>/dev/null
+        {_carrt("episodes", "video", str(episodes), "-o", "$SMALL/run.mp4")}
+        echo "rc=$?"
+    """))  # fmt: skip
+    assert "rc=2" in done.stdout and "Traceback" not in done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("carrt episodes: error: disk full: ")
