@@ -173,18 +173,21 @@ class FrameStore:
 
     def __init__(self, episodes: Sequence[Episode]) -> None:
         self.paths = [Path(ep.path) for ep in episodes]
+        self.starts = [int(getattr(ep, "start", 0)) for ep in episodes]  # a marked segment's
         self._eps = [_arrays(ep) for ep in episodes]
         self.offsets = np.cumsum([0, *(a.n for a in self._eps)]).astype(np.int64)
         self._load(episodes)
 
     def _load(self, episodes: Sequence[Episode] | None = None) -> None:
-        if episodes is None:
+        starts = [0] * len(self.paths) if episodes is not None else self.starts
+        if episodes is None:  # unpickled (a DataLoader worker): read again, segments included
             episodes = [read_episode(p) for p in self.paths]
         total = int(self.offsets[-1])
         self.frames = torch.empty((total, *IMAGE_SHAPE), dtype=torch.uint8)
         view = self.frames.numpy()
         for i, ep in enumerate(episodes):
-            view[self.offsets[i] : self.offsets[i + 1]] = ep.frames[: self._eps[i].n]
+            first = starts[i]
+            view[self.offsets[i] : self.offsets[i + 1]] = ep.frames[first : first + self._eps[i].n]
         self._resized: dict[int, torch.Tensor] = {}
 
     def __getstate__(self) -> dict[str, Any]:

@@ -14,7 +14,8 @@ import logging
 import os
 from collections.abc import Iterable, Sequence
 
-from carrt.episodes.reader import Episode, list_episodes, read_episode
+from carrt.episodes.marks import kept_segments, read_marks
+from carrt.episodes.reader import Episode, list_episodes, read_episode, segment
 
 log = logging.getLogger("training.data")  # the name users and tests already filter on
 
@@ -26,7 +27,7 @@ def load_episodes(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> lis
     Every record's CRC is checked, not only the unsynced tail the car's reader checks: a byte
     flipped on disk or in a copy would otherwise reach training unnoticed. An episode is cut
     before its first damaged record, and the cut is logged."""
-    episodes = []
+    episodes, excluded, marked = [], 0, 0
     for path in list_episodes(paths):
         ep = read_episode(path, verify_all=True)
         recorded = int((ep.meta.get("counts") or {}).get("steps", ep.n))
@@ -35,9 +36,28 @@ def load_episodes(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> lis
                 "%s: record %d fails its CRC: training uses the %d records before it of %d",
                 ep.name, ep.n, ep.n, recorded,
             )  # fmt: skip
-        if ep.n > 0:
-            episodes.append(ep)
+        if ep.n == 0:
+            continue
+        kept = apply_marks(ep)
+        cut = ep.n - sum(part.n for part in kept)
+        excluded, marked = excluded + cut, marked + (cut > 0)
+        episodes.extend(kept)
+    if excluded:
+        log.info("marks: %d steps of %d episodes left out of training", excluded, marked)
     return episodes
+
+
+def apply_marks(ep: Episode) -> list[Episode]:
+    """The episode's steps a person did not exclude (carrt/episodes/marks.py), as segments:
+    unmarked it is itself; excluded ranges split it, so no window or sequence spans one."""
+    marks = read_marks(ep.path)
+    if marks.empty:
+        return [ep]
+    excluded = marks.excluded(ep.timestamps)
+    if not excluded.any():
+        return [ep]
+    runs = kept_segments(excluded)
+    return [segment(ep, a, b, i) for i, (a, b) in enumerate(runs)]
 
 
 def _rank_key(seed: int, name: str) -> bytes:

@@ -54,6 +54,30 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     video.add_argument("--every", type=int, default=10, help="sheet: every Nth frame (default 10)")
     video.set_defaults(func=run)
 
+    mark = sub.add_parser(
+        "mark",
+        help="exclude seconds of an episode from training, or note something, without "
+        "rewriting it (marks.json beside it, undoable)",
+        description="Marks live beside the recorded files (which are never rewritten): "
+        "excluded ranges, in seconds from the episode's first frame, and notes. Training leaves "
+        "excluded steps out of every stage.",
+        epilog="example: carrt episodes mark episodes/20261123-101500-000 --exclude 12.5-15.0",
+    )
+    mark.add_argument("episode", metavar="EP", nargs="+", help="episode directories")
+    mark.add_argument("--exclude", action="append", default=[], metavar="START-END",
+                      help="exclude START-END seconds (repeatable)")  # fmt: skip
+    mark.add_argument("--exclude-last", metavar="SECONDS",
+                      help="exclude the last SECONDS (e.g. 3s)")  # fmt: skip
+    mark.add_argument("--exclude-all", action="store_true", help="exclude the whole episode")
+    mark.add_argument("--note", action="append", default=[], help="add a note")
+    what = mark.add_mutually_exclusive_group()
+    what.add_argument("--list", action="store_true", help="print the marks (the default)")
+    what.add_argument("--clear", action="store_true", help="remove every mark")
+    what.add_argument(
+        "--undo", action="store_true", help="back to the marks before the last change"
+    )
+    mark.set_defaults(func=run)
+
     view = sub.add_parser(
         "view",
         help="scrub episodes in a browser: frame, actions, plan, speed, flags, collisions, laps",
@@ -75,7 +99,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    actions = {"ls": run_ls, "show": run_show, "video": run_video, "view": run_view}
+    actions = {"ls": run_ls, "show": run_show, "video": run_video, "view": run_view,
+               "mark": run_mark}  # fmt: skip
     return actions[args.episodes_command](args)
 
 
@@ -90,6 +115,7 @@ def run_ls(args: argparse.Namespace) -> int:
         total_s += s["duration_s"]
         total_frames += s["frames"]
         end = s["end_reason"] + (" (torn tail)" if s["torn_tail"] else "")
+        end += f" ({s['excluded_steps']} excluded)" if s["excluded_steps"] else ""
         print(
             f"{s['name']:<22} {s['duration_s']:>8.1f}s {s['frames']:>7} "
             f"{s['avg_speed_mps']:>8.2f}  {end}"
@@ -116,6 +142,41 @@ def run_show(args: argparse.Namespace) -> int:
     if ep.damage is not None:  # damage is not a torn tail: the run says so and fails
         print(f"carrt: error: {ep.damage.describe(ep.path)}", file=sys.stderr)
         return EXIT_USAGE
+    return 0
+
+
+def run_mark(args: argparse.Namespace) -> int:
+    from carrt.episodes import marks as mk
+
+    episodes = [read_episode(path) for path in in_order(args.episode)]  # errors before changes
+    ranges = [mk.parse_range(text) for text in args.exclude]
+    last = mk.parse_seconds(args.exclude_last) if args.exclude_last else None
+    adds = bool(ranges or last is not None or args.exclude_all or args.note)
+    if adds and (args.clear or args.undo):
+        raise UserError("--clear and --undo stand alone: give them without new marks")
+    for ep in episodes:
+        if args.undo:
+            marks = mk.undo(ep.path)
+        elif args.clear:
+            marks = mk.change(ep.path, lambda m: (m.exclude.clear(), m.notes.clear(),
+                                                  setattr(m, "whole", False)))  # fmt: skip
+        elif adds:
+            new = list(ranges)
+            if last is not None:
+                # the steps in (end − last, end]: "the last 3 s" of 10 Hz is 30 steps
+                start = round(max(0.0, ep.duration_s - last) + 1e-3, 3)
+                new.append((start, round(ep.duration_s + 1.0, 3)))
+
+            def add(m, new=new):
+                m.exclude.extend(r for r in new if r not in m.exclude)
+                m.whole = m.whole or args.exclude_all
+                m.notes.extend(args.note)
+
+            marks = mk.change(ep.path, add)
+        else:
+            marks = mk.read_marks(ep.path)
+        excluded = int(marks.excluded(ep.timestamps).sum()) if ep.n else 0
+        print(f"{ep.name}: {marks.describe()} ({excluded} of {ep.n} steps excluded)")
     return 0
 
 

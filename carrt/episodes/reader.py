@@ -54,10 +54,12 @@ class Episode:
     collision: np.ndarray  # uint8 (N,)
     torn: bool  # bytes after the last valid step were ignored
     damage: Damage | None = None  # verify_all found damage inside the durable steps
+    start: int = 0  # a segment of the recorded episode (marks): its first step in the files
+    part: str = ""  # the segment's suffix to the name ("#1")
 
     @property
     def name(self) -> str:
-        return self.path.name
+        return self.path.name + self.part
 
     @property
     def n(self) -> int:
@@ -129,6 +131,13 @@ def read_episode(path: str | os.PathLike, *, verify_all: bool = False) -> Episod
     torn = steps_size != n * dtype.itemsize or frames_size != n * fmt.FRAME_BYTES
     collision = collision_labels(steps, end_reason=(meta.get("end") or {}).get("reason"))
     return Episode(path, meta, frames, steps, collision, torn and damage is None, damage)
+
+
+def segment(ep: Episode, start: int, end: int, index: int) -> Episode:
+    """Steps [start, end) of an episode as an episode of its own (views, nothing copied)."""
+    return Episode(ep.path, ep.meta, ep.frames[start:end], ep.steps[start:end],
+                   ep.collision[start:end], ep.torn, ep.damage, ep.start + start,
+                   f"#{index}")  # fmt: skip
 
 
 def _damage(path: Path, meta: dict, raw, frames, n: int, dtype: np.dtype) -> Damage | None:

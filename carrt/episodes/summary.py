@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from carrt.episodes.marks import read_marks
 from carrt.episodes.reader import Episode, collision_events, estop_count, speed_stats
 from carrt.interfaces import Mode
 
@@ -22,6 +23,7 @@ def summarize(ep: Episode) -> dict[str, Any]:
     counts = ep.meta.get("counts") or {}
     model = ep.meta.get("model") or {}
     n = ep.n
+    marks = read_marks(ep.path)
     return {
         "name": ep.name,
         "path": str(ep.path),
@@ -42,6 +44,8 @@ def summarize(ep: Episode) -> dict[str, Any]:
         "end_reason": ep.end_reason,
         "torn_tail": ep.torn,
         "damage": None if ep.damage is None else asdict(ep.damage),
+        "marks": marks.describe(),
+        "excluded_steps": int(marks.excluded(steps["frame_captured_at"]).sum()) if n else 0,
         "model_sha256": model.get("sha256"),
     }
 
@@ -65,5 +69,11 @@ def format_summary(summary: dict[str, Any]) -> str:
         + (f"  (CORRUPTED at step {damage['step']}: {damage['where']})" if damage else "")
         + ("  (empty: no step was written before the run ended)" if not summary["frames"] else ""),
         f"model          {summary['model_sha256'] or '-'}",
+        f"marks          {summary['marks']}"
+        + (
+            f" ({summary['excluded_steps']} steps out of training)"
+            if summary["excluded_steps"]
+            else ""
+        ),
     ]
     return "\n".join(lines)
