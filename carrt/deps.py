@@ -31,6 +31,7 @@ INSTALL_HINTS: dict[str, tuple[str, str]] = {
     "gymnasium": ("gymnasium (the simulator's environment API)", LAPTOP),
     "matplotlib": ("matplotlib (plots)", LAPTOP),
     "av": ("PyAV (H.264 episode videos)", f"{LAPTOP} (or pip install av)"),
+    "rerun": ("the Rerun SDK (episodes in Rerun)", f"{LAPTOP} (or pip install rerun-sdk)"),
     "pygame": ("pygame (joystick and simulator window)", "pip install pygame"),
     "torch": ("PyTorch (training)", TRAIN),
     "onnx": ("onnx (export)", TRAIN),

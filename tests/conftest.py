@@ -41,13 +41,15 @@ def sim_episodes(tmp_path_factory):
     return record_sim_dataset(tmp_path_factory.mktemp("sim-data"))
 
 
-# Test modules that need the train extra (torch, training/, export/): `make test` runs every test
-# under 3.11, then everything else with --runtime-only under 3.10 in a venv without torch.
+# Test modules that need the train extra (torch, training/, export/) or a laptop tool without a
+# Python 3.10 build: `make test` runs every test under 3.11, then everything else with
+# --runtime-only under 3.10 in a venv without torch.
 TRAIN_TEST_MODULES = (
     "test_train_*.py", "test_export.py", "test_research_train_*.py",
     "test_research_redrive.py",  # research.redrive reads training.sim_data's held-out placements
     "test_research_ceiling.py",  # research.ceiling takes the objective weights from training
     "test_docs_*.py",  # the docs' commands include carrt-train's: checked once, under 3.11
+    "test_episodes_rerun.py",  # a laptop tool: the Rerun SDK's chunk reader needs Python 3.11+
 )  # fmt: skip
 
 

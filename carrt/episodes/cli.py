@@ -78,6 +78,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     mark.set_defaults(func=run)
 
+    rrd = sub.add_parser(
+        "rerun",
+        help="write episodes as a Rerun recording (.rrd): camera, speed, actions, plan, mode, "
+        "collisions, marks on one timeline per episode",
+        epilog="example: carrt episodes rerun episodes/20261123-* -o run.rrd && rerun run.rrd",
+    )
+    rrd.add_argument("episode", metavar="EP", nargs="+", help="episodes, or folders of them")
+    rrd.add_argument("-o", "--output", required=True, metavar="FILE.rrd", help="file to write")
+    rrd.set_defaults(func=run)
+
     view = sub.add_parser(
         "view",
         help="scrub episodes in a browser: frame, actions, plan, speed, flags, collisions, laps",
@@ -100,7 +110,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     actions = {"ls": run_ls, "show": run_show, "video": run_video, "view": run_view,
-               "mark": run_mark}  # fmt: skip
+               "mark": run_mark, "rerun": run_rerun}  # fmt: skip
     return actions[args.episodes_command](args)
 
 
@@ -177,6 +187,17 @@ def run_mark(args: argparse.Namespace) -> int:
             marks = mk.read_marks(ep.path)
         excluded = int(marks.excluded(ep.timestamps).sum()) if ep.n else 0
         print(f"{ep.name}: {marks.describe()} ({excluded} of {ep.n} steps excluded)")
+    return 0
+
+
+def run_rerun(args: argparse.Namespace) -> int:
+    from carrt.episodes.rerun_export import write_rrd
+
+    if not args.output.endswith(".rrd"):
+        raise UserError(f"-o {args.output}: a Rerun recording ends in .rrd")
+    episodes = [read_episode(path) for path in in_order(args.episode)]
+    steps = write_rrd(episodes, args.output)
+    print(f"wrote {args.output} ({len(episodes)} episode(s), {steps} steps): rerun {args.output}")
     return 0
 
 
