@@ -35,6 +35,10 @@ class IterateConfig:
     world_episodes: tuple[str, ...] = ()
     out: str = ""  # run directory: checkpoints, policy.pt, policy.onnx, report.md, figures
     init: str | None = None  # previous iteration's run directory (None: iteration 1)
+    # a torchvision resnet18 state_dict file the user has (never downloaded): the policy's and
+    # the world model's backbones start from it instead of a random initialisation (--pretrained;
+    # its shapes must fit the profile: ImageNet resnet18 weights are width 64, the paper profile)
+    pretrained: str | None = None
     profile: str = "cpu"  # model sizes and presets: tiny (tests), cpu (a laptop), paper (GPU)
     val_fraction: float = 0.1  # share of PLACEMENTS held out (data.split_by_placement)
     seed: int = 0  # seeds model init, batch order and refinement noise

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import pickle
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -71,6 +72,10 @@ def add_iteration_args(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--init", metavar="DIR", help="previous iteration's run directory")
+    p.add_argument(
+        "--pretrained", metavar="FILE",
+        help="a torchvision resnet18 state_dict file: the backbones start from it (paper profile)",
+    )  # fmt: skip
     p.add_argument("--profile", help=f"{' | '.join(PROFILES)} (default: --init's, else cpu)")
     p.add_argument("--steps", type=int, help="optimizer steps of every stage")
     p.add_argument("--no-uncertainty", action="store_true", help="w_unc = 0 (the -unc ablation)")
@@ -103,6 +108,10 @@ def config_from(a: argparse.Namespace) -> IterateConfig:
         cfg = dataclasses.replace(
             cfg, imitation_steps=a.steps, world_model_steps=a.steps, refine_steps=a.steps
         )
+    if getattr(a, "pretrained", None) is not None:
+        if not Path(a.pretrained).is_file():
+            raise UsageError(f"--pretrained {a.pretrained}: no such file")
+        cfg = dataclasses.replace(cfg, pretrained=a.pretrained)
     for name in ("seed", "device"):
         if getattr(a, name) is not None:
             cfg = dataclasses.replace(cfg, **{name: getattr(a, name)})
@@ -253,6 +262,13 @@ def build_models(cfg: IterateConfig, start: Start):
     policy, world_model = PolicyNet(cfg.profile_obj), WorldModel(cfg.profile_obj)
     policy.set_normalisation(start.norm)
     world_model.set_normalisation(start.norm)
+    if cfg.pretrained:  # before the starts and checkpoints, which overwrite what they hold
+        for model in (policy, world_model):
+            try:
+                model.backbone.load_pretrained(cfg.pretrained)
+            except (ValueError, RuntimeError, OSError, pickle.UnpicklingError) as exc:
+                first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise UserError(f"--pretrained: {first}") from None
     if start.policy is not None:
         policy.load_state_dict(start.policy)
     if start.world_model is not None:
