@@ -126,3 +126,50 @@ def test_a_folder_of_episodes_is_viewed_as_ls_lists_it(tmp_path):
         for k, episode in ((19, first), (20, second), (50, extra)):
             status, body = request(f"{served.base}/step.json?k={k}")
             assert status == 200 and json.loads(body)["episode"] == episode.name, (k, body)
+
+
+def _key(browser, key: str) -> None:
+    browser.execute_script(
+        "document.dispatchEvent(new KeyboardEvent('keydown', {key: arguments[0]}))", key
+    )
+
+
+def _wait(browser, script: str, expected, what: str) -> None:
+    deadline = time.monotonic() + 10
+    while browser.execute_script(script) != expected:
+        assert time.monotonic() < deadline, f"the page never showed {what}"
+        time.sleep(0.05)
+
+
+def test_a_range_marked_in_the_browser_is_excluded_and_undone(tmp_path):
+    """[ at step 5, ] at step 9: steps 5–9 of the first episode are excluded (marks.json beside
+    it, the recording's bytes unchanged, the timeline's count says 5, training reads the rest);
+    u takes it back."""
+    import hashlib
+
+    from carrt.episodes.marks import read_marks
+
+    episodes = _episodes(tmp_path)
+    first = episodes[0].path
+    digest = {n: hashlib.sha256((first / n).read_bytes()).hexdigest()
+              for n in ("steps.bin", "frames.u8", "meta.json")}  # fmt: skip
+    argv = ["episodes", "view", *(str(ep.path) for ep in episodes), "--view", "0"]
+    with carrt_with_view(argv, tmp_path) as run, chromium() as browser:
+        browser.set_window_size(1400, 900)
+        browser.get(run.url)
+        _wait(browser, "return document.getElementById('marks').textContent", "none", "marks")
+        _scrub(browser, 5)
+        _key(browser, "[")
+        _scrub(browser, 9)
+        _key(browser, "]")
+        _wait(browser, "return document.getElementById('marks').dataset.excluded", "5",
+              "5 excluded steps")  # fmt: skip
+        marks = read_marks(first)
+        t = episodes[0].steps["frame_captured_at"]
+        assert np.flatnonzero(marks.excluded(t)).tolist() == [5, 6, 7, 8, 9]
+        assert "excluded" in _text(browser, "marks")
+        _key(browser, "u")
+        _wait(browser, "return document.getElementById('marks').textContent", "none", "undo")
+        assert read_marks(first).exclude == []
+    assert digest == {n: hashlib.sha256((first / n).read_bytes()).hexdigest()
+                      for n in ("steps.bin", "frames.u8", "meta.json")}  # fmt: skip

@@ -7,6 +7,11 @@ only where the slider stops, and nothing new is installed (no Jupyter, no Rerun 
 Jetson). The page gets the whole timeline once (speed, mode, actions, flags: small numbers) and
 asks for one step's frame and plan as the slider moves.
 
+The page also marks (carrt/episodes/marks.py): select a range with `[` and `]` (or the buttons)
+and it is excluded from training, `u` undoes, `x` excludes the whole episode; the excluded
+steps are shaded on the timeline. Marks go to `marks.json` beside the episode through POSTs
+(the view server's token and header rules); the recorded files are never written.
+
 Frames are PNG, not JPEG: lossless, so the page shows the 96×96 image the policy was trained
 on pixel for pixel (a 96×96 PNG is a few kB; nothing here runs at 10 Hz).
 """
@@ -20,8 +25,10 @@ from typing import Any
 
 import numpy as np
 
+from carrt.episodes import marks as mk
 from carrt.episodes.format import FLAGS
 from carrt.episodes.reader import Episode, in_order, read_episode
+from carrt.errors import UserError
 from carrt.interfaces import Mode
 from carrt.view.server import Response, Route, ViewServer, json_response, page
 
@@ -44,8 +51,50 @@ class EpisodeFeed:
             "/frame.png": lambda q: self.frame(self._k(q)),
         }
 
-    def _k(self, query: dict[str, str]) -> int:
-        k = int(query["k"])
+    def post_routes(self) -> dict[str, Route]:
+        """Marks from the page: each answers with the episode's marks after the change."""
+        return {
+            "/exclude.json": lambda q: json_response(
+                self.exclude(self._k(q, "k0"), self._k(q, "k1"))
+            ),
+            "/exclude_episode.json": lambda q: json_response(self.exclude_episode(self._k(q))),
+            "/undo.json": lambda q: json_response(self.undo(self._k(q))),
+        }
+
+    def _times(self, ep: Episode) -> np.ndarray:
+        t = np.asarray(ep.steps["frame_captured_at"], dtype=np.float64)
+        return t - t[0]
+
+    def exclude(self, k0: int, k1: int) -> dict[str, Any]:
+        (ep, i0), (other, i1) = self.locate(min(k0, k1)), self.locate(max(k0, k1))
+        if other is not ep:
+            raise IndexError("a range to exclude lies inside one episode")
+        rel = self._times(ep)
+        lo, hi = float(rel[i0]), float(rel[i1]) + 1e-3  # [lo, hi): step i1 included
+
+        def add(m: mk.Marks) -> None:
+            if (lo, hi) not in m.exclude:
+                m.exclude.append((lo, hi))
+
+        return self._answer(ep, mk.change(ep.path, add))
+
+    def exclude_episode(self, k: int) -> dict[str, Any]:
+        ep, _ = self.locate(k)
+        return self._answer(ep, mk.change(ep.path, lambda m: setattr(m, "whole", True)))
+
+    def undo(self, k: int) -> dict[str, Any]:
+        ep, _ = self.locate(k)
+        try:
+            return self._answer(ep, mk.undo(ep.path))
+        except UserError as exc:
+            return {"episode": ep.name, "error": str(exc)}
+
+    def _answer(self, ep: Episode, marks: mk.Marks) -> dict[str, Any]:
+        excluded = marks.excluded(ep.steps["frame_captured_at"]) if ep.n else []
+        return {"episode": ep.name, "marks": marks.describe(), "excluded": int(np.sum(excluded))}
+
+    def _k(self, query: dict[str, str], name: str = "k") -> int:
+        k = int(query[name])
         if not 0 <= k < self.total:
             raise IndexError(f"step {k} is not in 0..{self.total - 1}")
         return k
@@ -80,7 +129,14 @@ class EpisodeFeed:
             "executed": joined("executed_action"),
             "flags": {name: [bool(v) for v in joined(name)] for name in FLAGS},
             "collision_label": [int(v) for ep in self.episodes for v in ep.collision],
+            "excluded": [bool(v) for ep in self.episodes for v in self._excluded(ep)],
+            "marks": [mk.read_marks(ep.path).describe() for ep in self.episodes],
         }
+
+    def _excluded(self, ep: Episode) -> np.ndarray:
+        if not ep.n:
+            return np.zeros(0, dtype=bool)
+        return mk.read_marks(ep.path).excluded(ep.steps["frame_captured_at"])
 
     def step(self, k: int) -> dict[str, Any]:
         ep, i = self.locate(k)
@@ -125,7 +181,8 @@ def run_view(args: argparse.Namespace) -> int:
     # errors before binding; a folder of episodes is taken as `carrt episodes ls` takes it
     episodes = [read_episode(path) for path in in_order(args.episode)]
     server = ViewServer(args.view)
-    server.serve(EpisodeFeed(episodes).routes())
+    feed = EpisodeFeed(episodes)
+    server.serve(feed.routes(), feed.post_routes())
     total = sum(ep.n for ep in episodes)
     print(f"view: {server.url}", flush=True)
     print(f"{len(episodes)} episode(s), {total} steps; Ctrl-C to stop", flush=True)
