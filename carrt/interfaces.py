@@ -242,3 +242,4 @@ class LiveStatus:
     board_state: str = ""  # as the board last reported it
     telemetry_age_s: float = float("inf")
     link_counters: dict[str, Any] = field(default_factory=dict)  # a copy, taken at the tick
+    alert: str = ""  # what the person must know now (recording failed: the disk is full)

@@ -290,6 +290,7 @@ class ControlLoop:
             plan=self.plans.plan, sections_s=sections.times, telemetry_age_s=link.telemetry_age_s(),
             board_state=getattr(link.board_state, "name", str(link.board_state)),
             link_counters=dict(vars(link.counters)),  # a few ints: a copy costs ~1 µs
+            alert=self._alert(),
         )  # fmt: skip
         mode_name = decision.mode.name
         self.summary.modes_s[mode_name] = self.summary.modes_s.get(mode_name, 0.0) + self.period
@@ -338,6 +339,10 @@ class ControlLoop:
             sink.end(self._end_reason(decision.mode))
             rule.recording = False
             self._collision_ended = False
+
+    def _alert(self) -> str:
+        error = self.summary.write_error
+        return f"RECORDING FAILED: {error}" if error else ""
 
     def _write_failed(self, error: str | None) -> None:
         """The disk is full (or failing): said at once and loudly, whatever the log level, and

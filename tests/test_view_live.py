@@ -143,7 +143,10 @@ def test_localhost_needs_no_token_but_a_local_host_and_only_estop_acts():
         got = json.loads(body)
         assert (got["tick"], got["frame_seq"], got["mode"]) == (42, 7, "AUTO")
         assert got["plan"]["mu"][3] == [0.25, 0.25] and got["telemetry_age_ms"] is None
-        assert got["sections_ms"]["inference"] == 2.0
+        assert got["sections_ms"]["inference"] == 2.0 and got["alert"] == ""
+        loop.live = replace(loop.live, alert="RECORDING FAILED: disk full")
+        assert json.loads(request(base + "/state.json")[1])["alert"].startswith("RECORDING FAILED")
+        loop.live = replace(loop.live, alert="")
         assert request(base + "/")[0] == 200
         for path in ("/camera.jpg", "/crop.jpg"):
             status, body = request(base + path)

@@ -131,6 +131,7 @@ class LiveFeed:
                 "episodes": live.episodes,
                 "collisions": live.collisions,
                 "laps": live.laps,
+                "alert": live.alert,
             }
         )
 
