@@ -10,6 +10,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 from episode_factory import make_step, write_episode
 
@@ -116,3 +117,28 @@ def test_an_episode_a_crash_left_empty_says_so(tmp_path, capsys):
     (ep_dir / fmt.SYNCED).unlink(missing_ok=True)
     assert _cli(["episodes", "show", str(ep_dir), "--verify"]) == 0
     assert "empty: no step was written before the run ended" in capsys.readouterr().out
+
+
+def test_salvage_keeps_every_intact_step_in_a_new_episode_that_verifies(recorded, tmp_path, capsys):
+    """A flip in step 12's frame: salvage writes the other 39 steps, in order, as a new episode
+    that verifies; the damaged one is left as it was; an undamaged one has nothing to salvage."""
+    ep_dir = tmp_path / "ep"
+    shutil.copytree(recorded, ep_dir)
+    _flip(ep_dir / fmt.FRAMES, 12 * fmt.FRAME_BYTES + 7)
+    before = (ep_dir / fmt.FRAMES).read_bytes()
+    assert _cli(["episodes", "salvage", str(ep_dir), "-o", str(tmp_path / "out")]) == 0
+    out = tmp_path / "out" / "ep-salvaged"
+    assert f"wrote {out}: {STEPS - 1} intact steps of {STEPS}" in capsys.readouterr().out
+    assert _cli(["episodes", "show", str(out), "--verify"]) == 0
+    capsys.readouterr()
+    saved, original = read_episode(out, verify_all=True), read_episode(recorded)
+    kept = [i for i in range(STEPS) if i != 12]
+    assert saved.n == STEPS - 1 and saved.damage is None
+    assert np.array_equal(np.asarray(saved.frames), np.asarray(original.frames)[kept])
+    assert np.array_equal(saved.steps["speed_mps"], original.steps["speed_mps"][kept])
+    assert json.loads((out / fmt.META).read_text())["salvaged"]["damaged_from_step"] == 12
+    assert (ep_dir / fmt.FRAMES).read_bytes() == before
+    from carrt.cli import main
+
+    assert main(["episodes", "salvage", str(recorded), "-o", str(tmp_path / "x")]) == 2
+    assert "no damage inside its durable steps" in capsys.readouterr().err

@@ -78,6 +78,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     mark.set_defaults(func=run)
 
+    salvage = sub.add_parser(
+        "salvage",
+        help="write the intact steps of an episode --verify reports damaged as a new episode",
+        epilog="example: carrt episodes salvage episodes/20261123-101500-000 -o salvaged/",
+    )
+    salvage.add_argument("episode", metavar="EP", help="a damaged episode directory")
+    salvage.add_argument("-o", "--output", required=True, metavar="DIR",
+                         help="folder the new episode goes into")  # fmt: skip
+    salvage.set_defaults(func=run)
+
     rrd = sub.add_parser(
         "rerun",
         help="write episodes as a Rerun recording (.rrd): camera, speed, actions, plan, mode, "
@@ -110,7 +120,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     actions = {"ls": run_ls, "show": run_show, "video": run_video, "view": run_view,
-               "mark": run_mark, "rerun": run_rerun}  # fmt: skip
+               "mark": run_mark, "rerun": run_rerun, "salvage": run_salvage}  # fmt: skip
     return actions[args.episodes_command](args)
 
 
@@ -187,6 +197,16 @@ def run_mark(args: argparse.Namespace) -> int:
             marks = mk.read_marks(ep.path)
         excluded = int(marks.excluded(ep.timestamps).sum()) if ep.n else 0
         print(f"{ep.name}: {marks.describe()} ({excluded} of {ep.n} steps excluded)")
+    return 0
+
+
+def run_salvage(args: argparse.Namespace) -> int:
+    from carrt.episodes.salvage import salvage
+
+    out, kept, total = salvage(args.episode, args.output)
+    print(
+        f"wrote {out}: {kept} intact steps of {total} (verify: carrt episodes show {out} --verify)"
+    )
     return 0
 
 

@@ -1,0 +1,66 @@
+"""Salvage: the intact steps of a damaged episode, into a new episode beside the old.
+
+`carrt episodes show --verify` reports damage inside the durable steps (a flipped bit on the
+card, a bad copy) and training reads such an episode only up to the damage. Every record
+carries its own CRC over itself and its frame, so the steps after the damage that still pass
+theirs are whole too: `carrt episodes salvage EP -o DIR` writes the prefix and those steps, in
+order, as a new episode (records renumbered, CRCs recomputed, the gap said in its metadata).
+The damaged episode is left as it is.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from carrt.episodes import format as fmt
+from carrt.episodes.reader import read_episode
+from carrt.errors import UserError
+
+
+def intact_steps(path: Path) -> tuple[np.ndarray, np.ndarray, int]:
+    """(records, frames, total) of every record that passes its own checks (magic, CRC)."""
+    ep = read_episode(path, verify_all=True)
+    dtype = ep.steps.dtype
+    steps_size = (path / fmt.STEPS).stat().st_size
+    frames_size = (path / fmt.FRAMES).stat().st_size
+    total = min(steps_size // dtype.itemsize, frames_size // fmt.FRAME_BYTES)
+    raw = np.fromfile(path / fmt.STEPS, dtype=dtype, count=total)
+    if total == 0:
+        raise UserError(f"{path}: no whole record to salvage")
+    frames = np.memmap(path / fmt.FRAMES, dtype=np.uint8, mode="r", shape=(total, fmt.FRAME_BYTES))
+    records = raw.view(np.uint8).reshape(total, dtype.itemsize)
+    keep = [i for i in range(total) if raw["magic"][i] == fmt.MAGIC and
+            fmt.record_crc(records[i], frames[i]) == int(raw["crc"][i])]  # fmt: skip
+    return raw[keep], np.asarray(frames[keep]), total
+
+
+def salvage(path: str | Path, out_dir: str | Path) -> tuple[Path, int, int]:
+    """The new episode's path, the steps kept and the steps the old one had."""
+    path = Path(path)
+    ep = read_episode(path, verify_all=True)
+    if ep.damage is None:
+        raise UserError(f"{path}: no damage inside its durable steps: nothing to salvage")
+    records, frames, total = intact_steps(path)
+    out = Path(out_dir) / f"{path.name}-salvaged"
+    if out.exists():
+        raise UserError(f"{out} exists: salvage into another -o")
+    out.mkdir(parents=True)
+    renumbered = records.copy()
+    renumbered["seq"] = np.arange(len(renumbered), dtype=renumbered["seq"].dtype)
+    raw = renumbered.view(np.uint8).reshape(len(renumbered), renumbered.dtype.itemsize)
+    for i in range(len(renumbered)):
+        renumbered["crc"][i] = fmt.record_crc(raw[i], frames[i])
+    renumbered.tofile(out / fmt.STEPS)
+    frames.tofile(out / fmt.FRAMES)
+    meta = dict(ep.meta)
+    meta["counts"] = {**(meta.get("counts") or {}), "steps": len(renumbered)}
+    meta["salvaged"] = {"from": str(path), "steps_kept": len(renumbered), "steps_in": total,
+                        "damaged_from_step": ep.damage.step}  # fmt: skip
+    fmt.write_json_atomic(out / fmt.META, meta)
+    fmt.write_json_atomic(out / fmt.SYNCED, {"steps": len(renumbered)})
+    if (path / "marks.json").is_file():  # marks are in seconds: they still mean the same steps
+        shutil.copy2(path / "marks.json", out / "marks.json")
+    return out, len(renumbered), total
