@@ -216,3 +216,22 @@ def test_demonstrations_are_bit_reproducible_from_their_placement_seeds(tmp_path
         for field in ("executed_action", "speed_mps", "collision", "lap"):
             assert np.array_equal(steps_a[field], steps_b[field]), field
         assert np.array_equal(frames_a, frames_b)
+
+
+def test_publishing_merges_into_folders_another_placement_made(tmp_path):
+    """Two placements finish at once: the second's sim-runs/ goes into the folder the first
+    made, its episode takes the next free name of the same second, the marker comes last."""
+    out = tmp_path / "out"
+    (out / "sim-runs").mkdir(parents=True)
+    (out / "sim-runs" / "a.json").write_text("{}")
+    (out / "20261129-010101-000").mkdir()
+    (out / "20261129-010101-000" / "meta.json").write_text("{}")
+    job = sim_data.Job(("--version",), out / "logs" / "x.log", out / ".done-7", out, 7)
+    (job.staging / "sim-runs").mkdir(parents=True)
+    (job.staging / "sim-runs" / "b.json").write_text("{}")
+    (job.staging / "20261129-010101-000").mkdir()
+    (job.staging / "20261129-010101-000" / "meta.json").write_text('{"mine": 1}')
+    sim_data.publish(job)
+    assert sorted(p.name for p in (out / "sim-runs").iterdir()) == ["a.json", "b.json"]
+    assert (out / "20261129-010101-001" / "meta.json").read_text() == '{"mine": 1}'
+    assert job.marker.exists() and not job.staging.exists() and not job.complete.exists()

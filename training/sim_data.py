@@ -96,13 +96,20 @@ def publish(job: Job) -> None:
 
 
 def _merge(src: Path, dst: Path) -> None:
+    """Every entry of src into dst. Two workers publish at once: a folder (sim-runs/) the other
+    created a moment ago is merged into, never raced with a check first."""
     for entry in sorted(src.iterdir()):
         target = dst / entry.name
         if (entry / "meta.json").exists():
             _move_episode(entry, dst)
-        elif entry.is_dir() and target.is_dir():
-            _merge(entry, target)
-            entry.rmdir()
+        elif entry.is_dir():
+            try:
+                os.rename(entry, target)  # fails while target holds something
+            except OSError as exc:
+                if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY, errno.EISDIR):
+                    raise
+                _merge(entry, target)
+                entry.rmdir()
         else:
             os.replace(entry, target)
 
