@@ -13,11 +13,13 @@ from pathlib import Path
 FIRMWARE_DIR = Path(__file__).resolve().parent / "firmware"
 CORE_SRC = FIRMWARE_DIR / "carrt_fw" / "src"
 HOST_SRC = FIRMWARE_DIR / "host"
-SOURCES = (CORE_SRC / "fw_frame.c", CORE_SRC / "fw_core.c", HOST_SRC / "fw_host.c")
+SOURCES = (CORE_SRC / "fw_frame.c", CORE_SRC / "fw_core.c", CORE_SRC / "fw_rc.c",
+           HOST_SRC / "fw_host.c")  # fmt: skip
 HEADERS = (
     CORE_SRC / "fw_hal.h",
     CORE_SRC / "fw_frame.h",
     CORE_SRC / "fw_core.h",
+    CORE_SRC / "fw_rc.h",
     CORE_SRC / "protocol_generated.h",
 )
 # The strict warnings every host build must pass (the AVR build adds -Wconversion).

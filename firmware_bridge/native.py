@@ -134,6 +134,12 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
         "fwh_encode_frame": (c.c_size_t, [c.c_uint8, c.c_uint16, c.c_char_p, c.c_size_t, u8p]),
         "fwh_crc16": (c.c_uint16, [c.c_char_p, c.c_size_t]),
         "fwh_crc32c": (c.c_uint32, [c.c_char_p, c.c_size_t]),
+        "fwh_rc_size": (c.c_size_t, []),
+        "fw_rc_init": (None, [c.c_void_p]),
+        "fw_rc_edge": (None, [c.c_void_p, c.c_uint8, c.c_uint32, c.c_uint32]),
+        "fw_rc_poll": (None, [c.c_void_p, c.c_uint32]),
+        "fw_rc_valid": (c.c_uint8, [c.c_void_p]),
+        "fw_rc_width_us": (c.c_uint16, [c.c_void_p]),
     }
     for name, (restype, argtypes) in signatures.items():
         fn = getattr(lib, name)

@@ -10,6 +10,7 @@
 
 #include "fw_core.h"
 #include "fw_frame.h"
+#include "fw_rc.h"
 #include "protocol_generated.h"
 
 #define FWH_TX_CAPACITY 8192u
@@ -234,3 +235,7 @@ uint32_t fwh_crc32c(const uint8_t *data, size_t len) {
   }
   return crc ^ 0xFFFFFFFFUL;
 }
+
+/* ------------------------------------------------------------------ RC receiver decoder */
+
+size_t fwh_rc_size(void) { return sizeof(fw_rc_channel_t); }
