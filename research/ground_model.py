@@ -309,6 +309,24 @@ class HazardNet(nn.Module):
         return out[:, 0, 0]
 
 
+def outcome(speeds: Tensor, poses: Tensor, p_here: Tensor) -> dict[str, Tensor]:
+    """What imagine() answers, from the path and each step's chance of meeting a hazard there:
+    p_collision per step given no hit before (so its sum is the chance of a crash within the
+    horizon, as the check's truth counts one), survival after each step, P(crash), and no
+    learnt uncertainty (the u terms 0)."""
+    alive = torch.cumprod(1 - p_here, dim=1)
+    before = torch.cat([torch.ones_like(alive[:, :1]), alive[:, :-1]], dim=1)
+    zeros = torch.zeros_like(p_here)
+    return {
+        "speed": speeds,
+        "p_collision": before * p_here,
+        "survival": alive,
+        "p_crash": 1 - alive[:, -1],
+        "poses": poses,
+        **{name: zeros for name in ("u_image", "u_speed", "u_collision")},
+    }
+
+
 class GroundWorldModel(nn.Module):
     """The world model of 3b: exact motion, learnt speed response, hazard on the floor."""
 
@@ -334,17 +352,7 @@ class GroundWorldModel(nn.Module):
         m, h, p, _ = pts.shape
         hit = self.hazard.at(hazard, pts.reshape(m, h * p, 2)).view(m, h, p)
         p_here = hit.max(dim=2).values  # the car at step k meets hazard anywhere on its body
-        alive = torch.cumprod(1 - p_here, dim=1)
-        before = torch.cat([torch.ones_like(alive[:, :1]), alive[:, :-1]], dim=1)
-        zeros = torch.zeros_like(p_here)
-        return {
-            "speed": speeds,
-            "p_collision": before * p_here,
-            "survival": alive,
-            "p_crash": 1 - alive[:, -1],
-            "poses": poses,
-            **{name: zeros for name in ("u_image", "u_speed", "u_collision")},
-        }
+        return outcome(speeds, poses, p_here)
 
 
 class PerfectMapModel(GroundWorldModel):
@@ -388,17 +396,7 @@ class PerfectMapModel(GroundWorldModel):
         for o in track.obstacles:
             d = torch.minimum(d, torch.hypot(wx - o.x, wy - o.y) - o.radius)
         p_here = torch.sigmoid(-d / self.edge).max(dim=2).values
-        alive = torch.cumprod(1 - p_here, dim=1)
-        before = torch.cat([torch.ones_like(alive[:, :1]), alive[:, :-1]], dim=1)
-        zeros = torch.zeros_like(p_here)
-        return {
-            "speed": speeds,
-            "p_collision": before * p_here,
-            "survival": alive,
-            "p_crash": 1 - alive[:, -1],
-            "poses": poses,
-            **{name: zeros for name in ("u_image", "u_speed", "u_collision")},
-        }
+        return outcome(speeds, poses, p_here)
 
 
 # ---------------------------------------------------------------------------------- labels
