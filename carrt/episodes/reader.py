@@ -156,9 +156,15 @@ def _damage(path: Path, meta: dict, raw, frames, n: int, dtype: np.dtype) -> Dam
         where = f"{fmt.STEPS}: record {n}'s header"
     else:
         where = f"{fmt.STEPS} record {n} or its frame in {fmt.FRAMES}: CRC mismatch"
-    later = range(n + 1, min(durable, have))
-    intact = sum(1 for i in later if _valid_prefix(raw[: i + 1], frames, i, dtype) == 1)
-    return Damage(n, durable, where, intact)
+    intact = intact_records(raw, frames, n + 1, min(durable, have), dtype)
+    return Damage(n, durable, where, len(intact))
+
+
+def intact_records(raw: np.ndarray, frames: np.ndarray, start: int, stop: int,
+                   dtype: np.dtype) -> list[int]:  # fmt: skip
+    """Indices in [start, stop) of the records that pass their own checks (magic, record
+    number, CRC over record and frame): the steps a damaged episode still holds whole."""
+    return [i for i in range(start, stop) if _valid_prefix(raw[: i + 1], frames, i, dtype) == 1]
 
 
 def _size(path: Path) -> int:

@@ -16,24 +16,23 @@ from pathlib import Path
 import numpy as np
 
 from carrt.episodes import format as fmt
-from carrt.episodes.reader import read_episode
+from carrt.episodes.reader import Episode, intact_records, read_episode
 from carrt.errors import UserError
 
 
-def intact_steps(path: Path) -> tuple[np.ndarray, np.ndarray, int]:
-    """(records, frames, total) of every record that passes its own checks (magic, CRC)."""
-    ep = read_episode(path, verify_all=True)
+def intact_steps(path: Path, ep: Episode) -> tuple[np.ndarray, np.ndarray, int]:
+    """(records, frames, total) of the steps before the damage and of every later record that
+    passes its own checks, by the reader's rule (`intact_records`, which Damage counts too)."""
     dtype = ep.steps.dtype
     steps_size = (path / fmt.STEPS).stat().st_size
     frames_size = (path / fmt.FRAMES).stat().st_size
     total = min(steps_size // dtype.itemsize, frames_size // fmt.FRAME_BYTES)
-    raw = np.fromfile(path / fmt.STEPS, dtype=dtype, count=total)
     if total == 0:
         raise UserError(f"{path}: no whole record to salvage")
+    raw = np.fromfile(path / fmt.STEPS, dtype=dtype, count=total)
     frames = np.memmap(path / fmt.FRAMES, dtype=np.uint8, mode="r", shape=(total, fmt.FRAME_BYTES))
-    records = raw.view(np.uint8).reshape(total, dtype.itemsize)
-    keep = [i for i in range(total) if raw["magic"][i] == fmt.MAGIC and
-            fmt.record_crc(records[i], frames[i]) == int(raw["crc"][i])]  # fmt: skip
+    cut = ep.damage.step  # read up to here; that record fails its checks
+    keep = [*range(cut), *intact_records(raw, frames, cut + 1, total, dtype)]
     return raw[keep], np.asarray(frames[keep]), total
 
 
@@ -43,7 +42,7 @@ def salvage(path: str | Path, out_dir: str | Path) -> tuple[Path, int, int]:
     ep = read_episode(path, verify_all=True)
     if ep.damage is None:
         raise UserError(f"{path}: no damage inside its durable steps: nothing to salvage")
-    records, frames, total = intact_steps(path)
+    records, frames, total = intact_steps(path, ep)
     out = Path(out_dir) / f"{path.name}-salvaged"
     if out.exists():
         raise UserError(f"{out} exists: salvage into another -o")
