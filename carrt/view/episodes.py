@@ -90,8 +90,8 @@ class EpisodeFeed:
             return {"episode": ep.name, "error": str(exc)}
 
     def _answer(self, ep: Episode, marks: mk.Marks) -> dict[str, Any]:
-        excluded = marks.excluded(ep.steps["frame_captured_at"]) if ep.n else []
-        return {"episode": ep.name, "marks": marks.describe(), "excluded": int(np.sum(excluded))}
+        excluded = int(marks.excluded(ep.steps["frame_captured_at"]).sum())
+        return {"episode": ep.name, "marks": marks.describe(), "excluded": excluded}
 
     def _k(self, query: dict[str, str], name: str = "k") -> int:
         k = int(query[name])
@@ -110,6 +110,7 @@ class EpisodeFeed:
             parts = [np.asarray(ep.steps[name]) for ep in self.episodes]
             return np.round(np.concatenate(parts).astype(np.float64), 3).tolist() if parts else []
 
+        marks = [mk.read_marks(ep.path) for ep in self.episodes]  # each marks.json read once
         return {
             "total": self.total,
             "episodes": [
@@ -129,14 +130,13 @@ class EpisodeFeed:
             "executed": joined("executed_action"),
             "flags": {name: [bool(v) for v in joined(name)] for name in FLAGS},
             "collision_label": [int(v) for ep in self.episodes for v in ep.collision],
-            "excluded": [bool(v) for ep in self.episodes for v in self._excluded(ep)],
-            "marks": [mk.read_marks(ep.path).describe() for ep in self.episodes],
+            "excluded": [
+                bool(v)
+                for ep, m in zip(self.episodes, marks, strict=True)
+                for v in m.excluded(ep.steps["frame_captured_at"])
+            ],
+            "marks": [m.describe() for m in marks],
         }
-
-    def _excluded(self, ep: Episode) -> np.ndarray:
-        if not ep.n:
-            return np.zeros(0, dtype=bool)
-        return mk.read_marks(ep.path).excluded(ep.steps["frame_captured_at"])
 
     def step(self, k: int) -> dict[str, Any]:
         ep, i = self.locate(k)
