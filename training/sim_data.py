@@ -72,7 +72,7 @@ class Job:
 
     @property
     def staging(self) -> Path:
-        return self.out / f".partial-{self.track}"
+        return staging_of(self.out, self.track)
 
     @property
     def complete(self) -> Path:

@@ -160,7 +160,7 @@ def run_show(args: argparse.Namespace) -> int:
         else:
             print("(metadata: --meta)")
     if ep.damage is not None:  # damage is not a torn tail: the run says so and fails
-        print(f"carrt: error: {ep.damage.describe(ep.path)}", file=sys.stderr)
+        print(f"carrt episodes: error: {ep.damage.describe(ep.path)}", file=sys.stderr)
         return EXIT_USAGE
     return 0
 
