@@ -85,7 +85,7 @@ def render() -> str:
         ),
         "",
     ]
-    for enum in (m.State, m.Reason, m.ArmRefusal, m.ConfigResult):
+    for enum in m.ENUMS:
         prefix = "CARRT_" + _snake(enum.__name__).upper()
         out.append(f"/* {_own_doc(enum)} */")
         for e in enum:
@@ -170,7 +170,7 @@ def render_spec_tables() -> str:
             out.append(f"| {offset} | `{name}` | {kind} | {doc} |")
             offset += m.KINDS[kind][1]
         out.append("")
-    for enum in (m.State, m.Reason, m.ArmRefusal, m.ConfigResult):
+    for enum in m.ENUMS:
         out.append(f"**{enum.__name__}**: " + ", ".join(f"{e.value} `{e.name}`" for e in enum))
         out.append("")
     out.append(SPEC_END)

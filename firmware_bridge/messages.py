@@ -76,6 +76,8 @@ class Reason(IntEnum):
     DECISION_STALE = 6  # FAILSAFE: frames arrive but the decision id stopped changing (300 ms)
     STALL = 7  # FAILSAFE: throttle above 15 % and no encoder tick for 500 ms
     ARMED_OK = 8  # ARMED after a valid arm request
+    RC_SWITCH = 9  # ESTOP: the RC receiver's switch channel is in its e-stop position
+    RC_LOST = 10  # FAILSAFE: the receiver holds the person's controls and its signal was lost
 
 
 class ArmRefusal(IntEnum):
@@ -86,6 +88,8 @@ class ArmRefusal(IntEnum):
     THROTTLE_NOT_NEUTRAL = 2
     WHEELS_MOVING = 3
     NO_EDGE = 4  # the arm flag must go 0 -> 1 in separate frames (clear, then arm)
+    RC_NO_SIGNAL = 5  # the receiver holds the person's controls and has no valid signal
+    RC_NOT_NEUTRAL = 6  # the receiver's sticks are outside their deadzone
 
 
 class CommandFlags:
@@ -94,6 +98,15 @@ class CommandFlags:
     ESTOP = 0x01  # latch e-stop now
     ARM = 0x02  # level: the host wants to be armed; arming happens on its 0 -> 1 edge
     CLEAR = 0x04  # leave ESTOP/FAILSAFE for DISARMED (only honoured with ESTOP and ARM clear)
+    AUTO = 0x08  # the policy drives; its 0 -> 1 edge hands the wheels back from the receiver
+
+
+class Controls(IntEnum):
+    """Which device holds the person's controls (``Config.controls``)."""
+
+    PAD = 0  # a gamepad on the host; no receiver wired (its pins are ignored)
+    RECEIVER = 1  # the car's RC receiver, wired to the board; it drives MANUAL by itself
+    BOTH = 2  # pad and receiver; the receiver drives once a stick leaves its deadzone
 
 
 class TelemetryFlags:
@@ -101,6 +114,8 @@ class TelemetryFlags:
 
     CONFIG_FROM_STORAGE = 0x01  # the PWM config was loaded from the board's persistent storage
     LINK_OK = 0x02  # a valid COMMAND arrived within the watchdog period
+    RC_SIGNAL = 0x04  # all three receiver channels have a valid signal
+    RC_DRIVES = 0x08  # the receiver's sticks drive the wheels (MANUAL from it, or a take-over)
 
 
 class ConfigResult(IntEnum):
@@ -157,7 +172,9 @@ class Command:
     steering: int = wire("i16", "-10000 full left .. 10000 full right")
     throttle: int = wire("i16", "-10000 full reverse/brake .. 10000 full forward")
     decision_id: int = wire("u32", "changes with every new decision of the host's control loop")
-    flags: int = wire("u8", "bit0 ESTOP, bit1 ARM (level, arms on 0->1 edge), bit2 CLEAR")
+    flags: int = wire(
+        "u8", "bit0 ESTOP, bit1 ARM (level, arms on 0->1 edge), bit2 CLEAR, bit3 AUTO"
+    )
 
 
 @dataclass(frozen=True)
@@ -178,6 +195,11 @@ class Config:
         "u32", "throttle rise limit in 1/10000 per second (falls are immediate)", 20000
     )
     persist: int = wire("u8", "host->mcu: 1 to store in EEPROM/flash; mcu->host: 1 if stored")
+    controls: int = wire("u8", "the person's controls: 0 pad (no receiver), 1 receiver, 2 both")
+    rc_steer_center_us: int = wire("u16", "receiver steering pulse with the stick centred", 1500)
+    rc_throttle_center_us: int = wire("u16", "receiver throttle pulse at neutral", 1500)
+    rc_deadzone_us: int = wire("u16", "a stick further than this from its centre has moved", 60)
+    rc_estop_us: int = wire("u16", "switch channel pulse at or above this: e-stop", 1700)
 
 
 @dataclass(frozen=True)
@@ -210,12 +232,17 @@ class Telemetry:
     state: int = wire("u8", "0 DISARMED, 1 ARMED, 2 ESTOP, 3 FAILSAFE")
     reason: int = wire("u8", "why the board is in that state (see Reason)")
     arm_refusal: int = wire("u8", "why the last arm request was refused (see ArmRefusal)")
-    flags: int = wire("u8", "bit0 config from storage, bit1 link ok")
+    flags: int = wire(
+        "u8", "bit0 config from storage, bit1 link ok, bit2 receiver signal, bit3 receiver drives"
+    )
     bad_crc: int = wire("u16", "frames dropped for a bad CRC (saturating)")
     bad_length: int = wire("u16", "frames dropped: malformed COBS, unknown type or wrong length")
     overruns: int = wire("u16", "frames dropped because they outgrew the receive buffer")
     last_seq: int = wire("u16", "sequence number of the last accepted host frame")
     decision_id: int = wire("u32", "decision id of the last accepted COMMAND")
+    rc_steer_us: int = wire("u16", "receiver steering pulse (0: no valid signal)")
+    rc_throttle_us: int = wire("u16", "receiver throttle pulse (0: no valid signal)")
+    rc_switch_us: int = wire("u16", "receiver switch-channel pulse (0: no valid signal)")
 
 
 MESSAGES: tuple[type, ...] = (
@@ -229,6 +256,9 @@ MESSAGES: tuple[type, ...] = (
     ConfigAck,
     Telemetry,
 )
+
+ENUMS: tuple[type[IntEnum], ...] = (State, Reason, ArmRefusal, ConfigResult, Controls)
+"""The enumerations on the wire, in the header, the protocol hash and PROTOCOL.md."""
 
 BY_TYPE: dict[int, type] = {m.TYPE: m for m in MESSAGES}
 
@@ -257,7 +287,7 @@ def canonical_definition() -> str:
     for m in MESSAGES:
         body = ",".join(f"{name}:{kind}" for name, kind, _ in fields_of(m))
         lines.append(f"{m.__name__}={m.TYPE:#04x}/{m.DIRECTION}({body})")
-    for enum in (State, Reason, ArmRefusal, ConfigResult):
+    for enum in ENUMS:
         lines.append(enum.__name__ + "=" + ",".join(f"{e.name}:{e.value}" for e in enum))
     # the board's watchdog and freshness timing: a board with other values is another protocol
     lines.append(timing.canonical())

@@ -41,6 +41,8 @@ SANITIZE_FLAGS = (
 
 TX_BUFFER = 8192  # the harness's serial TX capacity (FWH_TX_CAPACITY)
 MAX_ENCODED_FRAME = 66  # FW_FRAME_MAX_ENCODED: 64 decoded bytes -> 65 COBS bytes + 0x00
+RC_STEERING, RC_THROTTLE, RC_SWITCH = 0, 1, 2  # receiver channels (FW_RC_* in fw_core.h)
+RC_TICKS_PER_US = 2  # Timer1's count: 0.5 us
 REBUILD_HINT = "reinstall carrt (pip install .) or, in a checkout, run make"
 
 
@@ -140,6 +142,10 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
         "fw_rc_poll": (None, [c.c_void_p, c.c_uint32]),
         "fw_rc_valid": (c.c_uint8, [c.c_void_p]),
         "fw_rc_width_us": (c.c_uint16, [c.c_void_p]),
+        "fwh_rc_edge": (None, [c.c_void_p, c.c_uint8, c.c_uint8, c.c_uint32, c.c_uint32]),
+        "fwh_rc_drives": (c.c_uint8, [c.c_void_p]),
+        "fwh_rc_width_us": (c.c_uint16, [c.c_void_p, c.c_uint8]),
+        "fwh_pwm_syncs": (c.c_uint32, [c.c_void_p]),
     }
     for name, (restype, argtypes) in signatures.items():
         fn = getattr(lib, name)
@@ -219,6 +225,27 @@ class FirmwareCore:
         # The board's counter is an int32 that wraps; so does this one.
         ticks = int(ticks) & 0xFFFFFFFF
         self._lib.fwh_set_encoder(self._h, ticks - (1 << 32) if ticks >= 1 << 31 else ticks)
+
+    def rc_edge(self, channel: int, level: int, ticks: int, now_ms: int) -> None:
+        """An edge on a receiver pin (RC_STEERING/RC_THROTTLE/RC_SWITCH), stamped with Timer1's
+        0.5 us count (wrapping uint32) and the board's millisecond clock."""
+        self._lib.fwh_rc_edge(
+            self._h, int(channel), 1 if level else 0, int(ticks) & 0xFFFFFFFF, _ms(now_ms)
+        )
+
+    @property
+    def rc_drives(self) -> bool:
+        """The receiver's pulses drive the outputs (MANUAL from it, or a take-over)."""
+        return bool(self._lib.fwh_rc_drives(self._h))
+
+    def rc_width_us(self, channel: int) -> int:
+        """The channel's last good pulse width; 0 while it has no valid signal."""
+        return int(self._lib.fwh_rc_width_us(self._h, int(channel)))
+
+    @property
+    def pwm_syncs(self) -> int:
+        """How often the core asked the outputs to start a frame now (a safety change)."""
+        return int(self._lib.fwh_pwm_syncs(self._h))
 
     @property
     def steer_us(self) -> int:

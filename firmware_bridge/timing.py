@@ -35,6 +35,8 @@ TABLE: tuple[Timing, ...] = (
            "throttle applied, wheels still for this long: FAILSAFE"),
     Timing("WHEELS_STOPPED_MS", 100, "ms", "board", "no encoder tick for this long: wheels still"),
     Timing("TELEMETRY_PERIOD_MS", 20, "ms", "board", "TELEMETRY every 20 ms (50 Hz)"),
+    Timing("RC_LOSS_MS", 100, "ms", "board",
+           "no valid receiver pulse on a channel for this long: its signal is lost"),
     # -- the host link (firmware_bridge/link.py)
     Timing("SEND_PERIOD_S", 0.02, "s", "host",
            "the sender thread repeats the latest decision at 50 Hz: ten per watchdog period"),
@@ -59,6 +61,7 @@ DECISION_STALE_MS = int(BY_NAME["DECISION_STALE_MS"].value)
 STALL_MS = int(BY_NAME["STALL_MS"].value)
 WHEELS_STOPPED_MS = int(BY_NAME["WHEELS_STOPPED_MS"].value)
 TELEMETRY_PERIOD_MS = int(BY_NAME["TELEMETRY_PERIOD_MS"].value)
+RC_LOSS_MS = int(BY_NAME["RC_LOSS_MS"].value)
 SEND_PERIOD_S = BY_NAME["SEND_PERIOD_S"].value
 HELLO_RETRY_S = BY_NAME["HELLO_RETRY_S"].value
 RECONNECT_RETRY_S = BY_NAME["RECONNECT_RETRY_S"].value

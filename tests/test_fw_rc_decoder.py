@@ -1,4 +1,4 @@
-"""The RC receiver's pulse decoder in the firmware's C core (issue 61, step 1), run on the host
+"""The RC receiver's pulse decoder in the firmware's C core, run on the host
 with a fake clock: ms-exact boundaries, widths exact to the microsecond, the 32-bit wrap, and a
 fuzz of random edge trains against a reference model of the rule fw_rc.h states."""
 
@@ -50,18 +50,44 @@ def test_a_receivers_pulse_train_is_valid_after_five_good_pulses_with_its_exact_
     assert ch.valid and ch.width == 1_537
 
 
-def test_a_bad_pulse_ends_validity_at_once_and_five_good_ones_restore_it():
+def test_a_glitch_on_a_valid_channel_is_dropped_and_the_last_good_width_kept():
     ch = Channel()
     for k in range(6):
         ch.pulse(k * 20_000, 1_500)
     assert ch.valid
     ch.pulse(6 * 20_000, 2_300)  # wider than any servo pulse
-    assert not ch.valid
-    for k in range(7, 11):
+    assert ch.valid and ch.width == 1_500
+    ch.pulse(6 * 20_000 + 500, 1_900)  # a runt period: not a receiver frame either
+    assert ch.valid and ch.width == 1_500
+    ch.pulse(7 * 20_000, 1_640)
+    assert ch.valid and ch.width == 1_640
+
+
+def test_before_a_channel_counts_a_bad_pulse_starts_the_run_again():
+    ch = Channel()
+    for k in range(5):
+        ch.pulse(k * 20_000, 1_500)
+    ch.pulse(5 * 20_000, 2_300)  # a period of its own: the next pulse's period is fine
+    for k in range(6, 10):
         ch.pulse(k * 20_000, 1_500)
         assert not ch.valid
-    ch.pulse(11 * 20_000, 1_500)
+    ch.pulse(10 * 20_000, 1_500)
     assert ch.valid
+
+
+def test_glitches_that_never_stop_end_the_signal_after_the_loss_time():
+    ch = Channel()
+    for k in range(6):
+        ch.pulse(k * 20_000, 1_500)
+    last_ms = (5 * 20_000 + 1_500) // 1000
+    for k in range(6, 11):  # only bad pulses from now on, until 200.5 ms
+        ch.pulse(k * 20_000, 500)
+        ch.poll((k * 20_000 + 500) // 1000)
+        assert ch.valid and ch.width == 1_500
+    ch.poll(last_ms + LOSS_MS)
+    assert ch.valid
+    ch.poll(last_ms + LOSS_MS + 1)
+    assert not ch.valid and ch.width == 0
 
 
 def test_widths_and_periods_out_of_range_never_count():
@@ -109,14 +135,15 @@ def reference(edges: list[tuple[int, int]]) -> list[tuple[bool, int]]:
         if level:
             period = ticks - rise
             period_ok = have_rise and MIN_P * TICKS_PER_US <= period <= MAX_P * TICKS_PER_US
-            if have_rise and not period_ok:
+            if have_rise and not period_ok and run < MIN_RUN:
                 run = 0
             rise, have_rise, high = ticks, True, True
         elif high:
             high = False
             w = ticks - rise
             if not MIN_W * TICKS_PER_US <= w <= MAX_W * TICKS_PER_US:
-                run = 0
+                if run < MIN_RUN:
+                    run = 0
             elif period_ok:
                 width, run = w // TICKS_PER_US, min(run + 1, MIN_RUN)
         valid = run >= MIN_RUN

@@ -22,6 +22,7 @@ typedef struct fwh {
   uint16_t pwm[2];
   int32_t encoder;
   uint16_t tx_dropped;
+  uint32_t pwm_syncs;
   size_t tx_len;
   uint8_t tx[FWH_TX_CAPACITY];
   uint8_t storage[FW_STORAGE_SIZE];
@@ -35,6 +36,10 @@ static void hal_pwm_write(void *ctx, uint8_t channel, uint16_t pulse_us) {
     h->pwm[channel] = pulse_us;
   }
 }
+
+/* The harness's outputs take a new width at once, so a sync only counts (the tests check that a
+ * safety change asks for one). */
+static void hal_pwm_sync(void *ctx) { ((fwh_t *)ctx)->pwm_syncs++; }
 
 static int32_t hal_encoder_read(void *ctx) { return ((fwh_t *)ctx)->encoder; }
 
@@ -83,6 +88,7 @@ void fwh_create(void *mem) {
   h->hal.serial_write = hal_serial_write;
   h->hal.storage_load = hal_storage_load;
   h->hal.storage_store = hal_storage_store;
+  h->hal.pwm_sync = hal_pwm_sync;
 }
 
 void fwh_boot(void *mem, uint32_t boot_id, uint32_t now_ms) {
@@ -239,3 +245,22 @@ uint32_t fwh_crc32c(const uint8_t *data, size_t len) {
 /* ------------------------------------------------------------------ RC receiver decoder */
 
 size_t fwh_rc_size(void) { return sizeof(fw_rc_channel_t); }
+
+void fwh_rc_edge(void *mem, uint8_t channel, uint8_t level, uint32_t ticks, uint32_t now_ms) {
+  fwh_t *h = (fwh_t *)mem;
+  if (h->booted) {
+    fw_core_rc_edge(&h->core, channel, level, ticks, now_ms);
+  }
+}
+
+uint8_t fwh_rc_drives(void *mem) {
+  fwh_t *h = (fwh_t *)mem;
+  return h->booted ? fw_core_rc_drives(&h->core) : 0u;
+}
+
+uint16_t fwh_rc_width_us(void *mem, uint8_t channel) {
+  fwh_t *h = (fwh_t *)mem;
+  return h->booted ? fw_core_rc_width_us(&h->core, channel) : 0u;
+}
+
+uint32_t fwh_pwm_syncs(void *mem) { return ((fwh_t *)mem)->pwm_syncs; }

@@ -61,6 +61,28 @@ static uint16_t map_pulse(int32_t v, uint16_t neg, uint16_t mid, uint16_t pos) {
   return (uint16_t)clamp32(out, lo, hi);
 }
 
+/* The inverse of map_pulse: which -10000..10000 a pulse stands for (0 beyond a missing side). */
+static int16_t unmap_pulse(uint16_t us, uint16_t neg, uint16_t mid, uint16_t pos) {
+  int32_t d = (int32_t)us - (int32_t)mid;
+  int32_t up = (int32_t)pos - (int32_t)mid;
+  int32_t down = (int32_t)mid - (int32_t)neg;
+  if (d != 0 && up != 0 && ((d > 0) == (up > 0))) {
+    return (int16_t)clamp32(d * FW_FULL_SCALE / up, -FW_FULL_SCALE, FW_FULL_SCALE);
+  }
+  if (d != 0 && down != 0 && ((d < 0) == (down > 0))) {
+    return (int16_t)clamp32(d * FW_FULL_SCALE / down, -FW_FULL_SCALE, FW_FULL_SCALE);
+  }
+  return 0;
+}
+
+static uint16_t clamp_between(uint16_t v, uint16_t a, uint16_t b) {
+  uint16_t lo = a < b ? a : b;
+  uint16_t hi = a < b ? b : a;
+  return v < lo ? lo : (v > hi ? hi : v);
+}
+
+static uint16_t udiff16(uint16_t a, uint16_t b) { return (uint16_t)(a > b ? a - b : b - a); }
+
 /* ------------------------------------------------------------------ config */
 
 void fw_config_defaults(carrt_config_t *config) {
@@ -74,6 +96,11 @@ void fw_config_defaults(carrt_config_t *config) {
   config->max_reverse = 10000u;
   config->slew_per_s = 20000UL;
   config->persist = 0u;
+  config->controls = (uint8_t)CARRT_CONTROLS_PAD; /* a car with no receiver wired */
+  config->rc_steer_center_us = 1500u;
+  config->rc_throttle_center_us = 1500u;
+  config->rc_deadzone_us = 60u;
+  config->rc_estop_us = 1700u;
 }
 
 uint8_t fw_config_valid(const carrt_config_t *c) {
@@ -92,6 +119,11 @@ uint8_t fw_config_valid(const carrt_config_t *c) {
     return 0;
   }
   if (c->max_forward > 10000u || c->max_reverse > 10000u) {
+    return 0;
+  }
+  if (c->controls > (uint8_t)CARRT_CONTROLS_BOTH || !pulse_ok(c->rc_steer_center_us) ||
+      !pulse_ok(c->rc_throttle_center_us) || !pulse_ok(c->rc_estop_us) ||
+      c->rc_deadzone_us < 10u || c->rc_deadzone_us > 500u) {
     return 0;
   }
   return (c->slew_per_s >= 100UL && c->slew_per_s <= 1000000UL) ? 1u : 0u;
@@ -156,11 +188,64 @@ static void send_frame(fw_core_t *core, uint8_t type, const uint8_t *payload, ui
   }
 }
 
+/* ------------------------------------------------------------------ the receiver */
+
+static uint8_t rc_wired(const fw_core_t *core) {
+  return core->config.controls != (uint8_t)CARRT_CONTROLS_PAD ? 1u : 0u;
+}
+
+static uint8_t rc_signal(const fw_core_t *core) {
+  uint8_t i;
+  for (i = 0; i < FW_RC_CHANNELS; i++) {
+    if (!fw_rc_valid(&core->rc[i])) {
+      return 0u;
+    }
+  }
+  return 1u;
+}
+
+static uint8_t rc_throttle_moved(const fw_core_t *core) {
+  return udiff16(fw_rc_width_us(&core->rc[FW_RC_THROTTLE]), core->config.rc_throttle_center_us) >
+                 core->config.rc_deadzone_us
+             ? 1u
+             : 0u;
+}
+
+static uint8_t rc_sticks_moved(const fw_core_t *core) {
+  return (rc_throttle_moved(core) ||
+          udiff16(fw_rc_width_us(&core->rc[FW_RC_STEERING]), core->config.rc_steer_center_us) >
+              core->config.rc_deadzone_us)
+             ? 1u
+             : 0u;
+}
+
+static uint8_t rc_switch_estop(const fw_core_t *core) {
+  const fw_rc_channel_t *sw = &core->rc[FW_RC_SWITCH];
+  return (fw_rc_valid(sw) && fw_rc_width_us(sw) >= core->config.rc_estop_us) ? 1u : 0u;
+}
+
+/* The receiver's pulses as outputs: each clamped between its endpoints, the throttle also to
+ * max_forward/max_reverse, as a command would be; the applied throttle follows (stall rule). */
+static void rc_outputs(fw_core_t *core, uint16_t *steer, uint16_t *throttle) {
+  const carrt_config_t *c = &core->config;
+  uint16_t fwd = map_pulse((int32_t)c->max_forward, c->throttle_reverse_us, c->throttle_neutral_us,
+                           c->throttle_forward_us);
+  uint16_t rev = map_pulse(-(int32_t)c->max_reverse, c->throttle_reverse_us,
+                           c->throttle_neutral_us, c->throttle_forward_us);
+  *steer = clamp_between(fw_rc_width_us(&core->rc[FW_RC_STEERING]), c->steer_left_us,
+                         c->steer_right_us);
+  *throttle = clamp_between(fw_rc_width_us(&core->rc[FW_RC_THROTTLE]), rev, fwd);
+  core->applied_throttle =
+      unmap_pulse(*throttle, c->throttle_reverse_us, c->throttle_neutral_us, c->throttle_forward_us);
+}
+
 static void write_outputs(fw_core_t *core, uint8_t force) {
   const carrt_config_t *c = &core->config;
   uint16_t steer = c->steer_center_us;
   uint16_t throttle = c->throttle_neutral_us;
-  if (core->state == CARRT_STATE_ARMED) {
+  if (core->state == CARRT_STATE_ARMED && core->rc_drives) {
+    rc_outputs(core, &steer, &throttle);
+  } else if (core->state == CARRT_STATE_ARMED) {
     steer = map_pulse(core->target_steer, c->steer_left_us, c->steer_center_us,
                       c->steer_right_us);
     throttle = map_pulse(core->applied_throttle, c->throttle_reverse_us,
@@ -180,13 +265,50 @@ static void write_outputs(fw_core_t *core, uint8_t force) {
   }
 }
 
+static void sync_outputs(fw_core_t *core) {
+  if (core->hal.pwm_sync != 0) {
+    core->hal.pwm_sync(core->hal.ctx);
+  }
+}
+
 static void enter_state(fw_core_t *core, uint8_t state, uint8_t reason) {
+  uint8_t stopping = (core->state == CARRT_STATE_ARMED && state != CARRT_STATE_ARMED) ? 1u : 0u;
   core->state = state;
   core->reason = reason;
   core->applied_throttle = 0;
   core->slew_rem = 0u;
   core->stall_timing = 0u;
+  core->rc_drives = 0u;
   write_outputs(core, 0u);
+  if (stopping) {
+    sync_outputs(core); /* neutral reaches the pins now, not at the end of the period */
+  }
+}
+
+/* The receiver's rules, after each of its pulses, each tick and each COMMAND. */
+static void apply_receiver(fw_core_t *core) {
+  if (!rc_wired(core)) {
+    core->rc_drives = 0u;
+    return;
+  }
+  if (rc_switch_estop(core) && core->state != CARRT_STATE_ESTOP) {
+    enter_state(core, CARRT_STATE_ESTOP, CARRT_REASON_RC_SWITCH);
+  }
+  if (core->state != CARRT_STATE_ARMED) {
+    core->rc_drives = 0u;
+    return;
+  }
+  if (!rc_signal(core)) {
+    enter_state(core, CARRT_STATE_FAILSAFE, CARRT_REASON_RC_LOST);
+    return;
+  }
+  if (!core->rc_drives &&
+      ((!core->auto_flag && core->config.controls == (uint8_t)CARRT_CONTROLS_RECEIVER) ||
+       rc_sticks_moved(core))) {
+    core->rc_drives = 1u; /* held until the AUTO flag's next 0 -> 1 edge */
+    write_outputs(core, 0u);
+    sync_outputs(core);
+  }
 }
 
 static void send_hello(fw_core_t *core) {
@@ -231,6 +353,15 @@ static void send_telemetry(fw_core_t *core, uint32_t now_ms) {
   t.overruns = core->rx.overruns;
   t.last_seq = core->last_seq;
   t.decision_id = core->decision_id;
+  t.rc_steer_us = fw_rc_width_us(&core->rc[FW_RC_STEERING]);
+  t.rc_throttle_us = fw_rc_width_us(&core->rc[FW_RC_THROTTLE]);
+  t.rc_switch_us = fw_rc_width_us(&core->rc[FW_RC_SWITCH]);
+  if (rc_signal(core)) {
+    t.flags |= CARRT_TELEMETRY_FLAGS_RC_SIGNAL;
+  }
+  if (core->rc_drives) {
+    t.flags |= CARRT_TELEMETRY_FLAGS_RC_DRIVES;
+  }
   carrt_pack_telemetry(&t, payload);
   send_frame(core, CARRT_MSG_TELEMETRY, payload, CARRT_MSG_TELEMETRY_SIZE);
 }
@@ -247,9 +378,10 @@ static void sample_encoder(fw_core_t *core, uint32_t now_ms) {
 }
 
 /* Link watchdog and decision freshness; run before a COMMAND refreshes them, too, so a late
- * tick cannot hide a gap. */
+ * tick cannot hide a gap. While the receiver drives, the person's hand reaches the wheels
+ * through the board alone: the host's rules give way to the receiver's loss rule. */
 static void check_timeouts(fw_core_t *core, uint32_t now_ms) {
-  if (core->state != CARRT_STATE_ARMED) {
+  if (core->state != CARRT_STATE_ARMED || core->rc_drives) {
     return;
   }
   if (elapsed_at_least(now_ms, core->last_command_ms, FW_LINK_TIMEOUT_MS)) {
@@ -310,6 +442,10 @@ static void try_arm(fw_core_t *core, int16_t throttle, uint32_t now_ms) {
     core->arm_refusal = CARRT_ARM_REFUSAL_THROTTLE_NOT_NEUTRAL;
   } else if (!elapsed_at_least(now_ms, core->encoder_change_ms, FW_WHEELS_STOPPED_MS)) {
     core->arm_refusal = CARRT_ARM_REFUSAL_WHEELS_MOVING;
+  } else if (rc_wired(core) && !rc_signal(core)) {
+    core->arm_refusal = CARRT_ARM_REFUSAL_RC_NO_SIGNAL;
+  } else if (rc_wired(core) && rc_throttle_moved(core)) {
+    core->arm_refusal = CARRT_ARM_REFUSAL_RC_NOT_NEUTRAL;
   } else {
     core->arm_refusal = CARRT_ARM_REFUSAL_NONE;
     core->decision_change_ms = now_ms; /* freshness is measured from arming */
@@ -324,6 +460,10 @@ static void on_command(fw_core_t *core, const uint8_t *payload, uint32_t now_ms)
   carrt_unpack_command(payload, &cmd);
   arm = (cmd.flags & CARRT_COMMAND_FLAGS_ARM) ? 1u : 0u;
   edge = (arm && !core->prev_arm) ? 1u : 0u;
+  if ((cmd.flags & CARRT_COMMAND_FLAGS_AUTO) && !core->auto_flag) {
+    core->rc_drives = 0u; /* the host resumes the policy: the wheels go back to it */
+  }
+  core->auto_flag = (cmd.flags & CARRT_COMMAND_FLAGS_AUTO) ? 1u : 0u;
   sample_encoder(core, now_ms);
   check_timeouts(core, now_ms);
 
@@ -362,8 +502,9 @@ static void on_command(fw_core_t *core, const uint8_t *payload, uint32_t now_ms)
   }
   core->prev_arm = arm;
 
+  apply_receiver(core);
   check_timeouts(core, now_ms);
-  if (core->state == CARRT_STATE_ARMED) {
+  if (core->state == CARRT_STATE_ARMED && !core->rc_drives) {
     slew_throttle(core, 0u, 0u);
     if (core->applied_throttle <= FW_STALL_THROTTLE) {
       core->stall_timing = 0u;
@@ -468,17 +609,38 @@ void fw_core_rx(fw_core_t *core, const uint8_t *data, uint16_t len, uint32_t now
   }
 }
 
+void fw_core_rc_edge(fw_core_t *core, uint8_t channel, uint8_t level, uint32_t ticks,
+                     uint32_t now_ms) {
+  if (channel >= FW_RC_CHANNELS) {
+    return;
+  }
+  fw_rc_edge(&core->rc[channel], level, ticks, now_ms);
+  if (!level) { /* a pulse ended: it may move a stick, the switch, or the outputs */
+    apply_receiver(core);
+    if (core->rc_drives) {
+      write_outputs(core, 0u);
+    }
+  }
+}
+
 void fw_core_tick(fw_core_t *core, uint32_t now_ms) {
   uint32_t dt = now_ms - core->last_tick_ms;
+  uint8_t i;
   core->last_tick_ms = now_ms;
   cap_age(now_ms, &core->last_command_ms);
   cap_age(now_ms, &core->decision_change_ms);
   cap_age(now_ms, &core->encoder_change_ms);
   cap_age(now_ms, &core->stall_since_ms);
   sample_encoder(core, now_ms);
+  for (i = 0; i < FW_RC_CHANNELS; i++) {
+    fw_rc_poll(&core->rc[i], now_ms);
+  }
+  apply_receiver(core);
   check_timeouts(core, now_ms);
   if (core->state == CARRT_STATE_ARMED) {
-    slew_throttle(core, dt, 1u);
+    if (!core->rc_drives) {
+      slew_throttle(core, dt, 1u);
+    }
     if (core->applied_throttle > FW_STALL_THROTTLE) {
       if (!core->stall_timing) {
         core->stall_timing = 1u;
@@ -509,3 +671,7 @@ uint16_t fw_core_throttle_us(const fw_core_t *core) { return core->throttle_us; 
 int16_t fw_core_applied_throttle(const fw_core_t *core) { return core->applied_throttle; }
 const fw_rx_t *fw_core_rx_stats(const fw_core_t *core) { return &core->rx; }
 const carrt_config_t *fw_core_config(const fw_core_t *core) { return &core->config; }
+uint8_t fw_core_rc_drives(const fw_core_t *core) { return core->rc_drives; }
+uint16_t fw_core_rc_width_us(const fw_core_t *core, uint8_t channel) {
+  return channel < FW_RC_CHANNELS ? fw_rc_width_us(&core->rc[channel]) : 0u;
+}

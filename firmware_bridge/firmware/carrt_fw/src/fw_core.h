@@ -8,7 +8,15 @@
  * States: DISARMED (boot) -> ARMED on a 0->1 edge of the ARM flag with neutral throttle and
  * stopped wheels; ARMED -> FAILSAFE on link timeout (200 ms), stale decision (300 ms) or stall
  * (500 ms); any state -> ESTOP (latched) on the e-stop flag; ESTOP/FAILSAFE -> DISARMED only on
- * an explicit CLEAR (with ESTOP and ARM clear). Outputs are neutral in every state but ARMED. */
+ * an explicit CLEAR (with ESTOP and ARM clear). Outputs are neutral in every state but ARMED.
+ *
+ * The RC receiver (config.controls RECEIVER or BOTH): the shim hands every edge of its three
+ * pins to fw_core_rc_edge(); the decoder (fw_rc.h) validates each channel, and the rules here
+ * decide: the switch channel in its e-stop position latches ESTOP; ARMED with the receiver's
+ * signal lost is FAILSAFE; in ARMED, a stick out of its deadzone (or, with RECEIVER, any COMMAND
+ * without the AUTO flag) hands the wheels to the receiver until the AUTO flag's next 0->1 edge.
+ * While the receiver drives, its pulses go straight to the outputs (clamped like commands), the
+ * host's watchdog and freshness rules give way to the receiver's loss rule, and TELEMETRY says so. */
 #ifndef CARRT_FW_CORE_H
 #define CARRT_FW_CORE_H
 
@@ -16,6 +24,7 @@
 
 #include "fw_frame.h"
 #include "fw_hal.h"
+#include "fw_rc.h"
 #include "protocol_generated.h"
 
 #ifdef __cplusplus
@@ -32,9 +41,14 @@ extern "C" {
 #define FW_ARM_THROTTLE_MAX 200     /* |throttle| <= 2 % counts as neutral for arming */
 #define FW_STALL_THROTTLE 1500      /* applied throttle above 15 % forward can stall */
 
+#define FW_RC_STEERING 0u /* receiver channels, in the order of fw_core_rc_edge() */
+#define FW_RC_THROTTLE 1u
+#define FW_RC_SWITCH 2u
+#define FW_RC_CHANNELS 3u
+
 /* Persistent config blob: magic u16, version u8, config payload, CRC u16 (all LE). */
 #define FW_STORAGE_MAGIC 0xCA27u
-#define FW_STORAGE_VERSION 1u
+#define FW_STORAGE_VERSION 2u /* 2: the receiver's fields */
 #define FW_STORAGE_SIZE (2u + 1u + CARRT_MSG_CONFIG_SIZE + 2u)
 
 typedef struct fw_core {
@@ -64,6 +78,9 @@ typedef struct fw_core {
   uint32_t encoder_change_ms;
   uint32_t stall_since_ms;
   uint32_t telemetry_due_ms;
+  fw_rc_channel_t rc[FW_RC_CHANNELS];
+  uint8_t rc_drives;     /* the receiver's pulses drive the outputs */
+  uint8_t auto_flag;     /* AUTO flag of the last accepted COMMAND */
 } fw_core_t;
 
 /* Boot: defaults or stored config, neutral outputs, DISARMED(BOOT), HELLO sent. The HAL struct
@@ -75,6 +92,11 @@ void fw_core_rx(fw_core_t *core, const uint8_t *data, uint16_t len, uint32_t now
 
 /* Call often (every loop, ideally about 1 ms): timeouts, slew, stall check, telemetry. */
 void fw_core_tick(fw_core_t *core, uint32_t now_ms);
+
+/* An edge of a receiver pin (FW_RC_*): level 1 rising, 0 falling, ticks Timer1's 0.5 us count
+ * (32-bit, wrapping) at the edge. Rules that a pulse may trigger are applied at once. */
+void fw_core_rc_edge(fw_core_t *core, uint8_t channel, uint8_t level, uint32_t ticks,
+                     uint32_t now_ms);
 
 /* Is this config acceptable (pulse ranges, centre between endpoints, limits, slew)? */
 uint8_t fw_config_valid(const carrt_config_t *config);
@@ -88,6 +110,8 @@ uint16_t fw_core_throttle_us(const fw_core_t *core);
 int16_t fw_core_applied_throttle(const fw_core_t *core);
 const fw_rx_t *fw_core_rx_stats(const fw_core_t *core);
 const carrt_config_t *fw_core_config(const fw_core_t *core);
+uint8_t fw_core_rc_drives(const fw_core_t *core);
+uint16_t fw_core_rc_width_us(const fw_core_t *core, uint8_t channel); /* 0: no valid signal */
 
 #ifdef __cplusplus
 }

@@ -29,6 +29,11 @@ typedef struct fw_hal {
    * Either may be NULL on a board without persistent storage. */
   uint8_t (*storage_load)(void *ctx, uint8_t *data, uint16_t len);
   uint8_t (*storage_store)(void *ctx, const uint8_t *data, uint16_t len);
+  /* Start the next output frame as soon as the pulses now on the pins have ended, instead of
+   * at the end of the 20 ms period: called when a safety change (e-stop, failsafe, a receiver
+   * take-over) must reach the servo and the ESC within one pulse period of its cause. May be
+   * NULL (outputs that follow a new width at once, as the host harness's). */
+  void (*pwm_sync)(void *ctx);
 } fw_hal_t;
 
 #ifdef __cplusplus

@@ -5,7 +5,15 @@
 
 void fw_rc_init(fw_rc_channel_t *ch) { memset(ch, 0, sizeof(*ch)); }
 
+/* A bad pulse: before the channel counts, the run starts over; once it counts, the pulse is
+ * dropped and the last good width stays (only FW_RC_LOSS_MS without a good one ends it). */
 static void reject(fw_rc_channel_t *ch) {
+  if (!ch->valid) {
+    ch->run = 0u;
+  }
+}
+
+static void lose(fw_rc_channel_t *ch) {
   ch->run = 0u;
   ch->valid = 0u;
 }
@@ -47,7 +55,7 @@ void fw_rc_edge(fw_rc_channel_t *ch, uint8_t level, uint32_t ticks, uint32_t now
 
 void fw_rc_poll(fw_rc_channel_t *ch, uint32_t now_ms) {
   if (ch->run > 0u && (uint32_t)(now_ms - ch->last_good_ms) > FW_RC_LOSS_MS) {
-    reject(ch);
+    lose(ch);
   }
 }
 

@@ -1,16 +1,21 @@
-/* The RC receiver's pulses, decoded (issue 61, step 1: the decoder alone, not yet wired).
+/* The RC receiver's pulses, decoded.
  *
  * A hobby receiver repeats each channel as a 1000-2000 us pulse every 10-25 ms. The Arduino
  * shim only timestamps the pin's edges against Timer1's 0.5 us counter (extended to 32 bits);
  * everything else is decided here, in the portable core, so the host tests run the very code
  * the board runs: a pulse counts when its width and the period since the previous rising edge
- * are both in range; a channel becomes valid after FW_RC_MIN_RUN such pulses in a row and stops
- * being valid at the first bad one, or when no good pulse came for FW_RC_LOSS_MS (polled every
- * tick). Times use unsigned subtraction: the 32-bit counters may wrap. */
+ * are both in range; a channel becomes valid after FW_RC_MIN_RUN such pulses in a row (a bad one
+ * before that starts the count again). A valid channel drops a bad pulse and keeps its last good
+ * width, as a receiver's own failsafe holds its last frame: one glitch on the wire must not stop
+ * a car. It stops being valid when no good pulse came for FW_RC_LOSS_MS (polled every tick; the
+ * protocol's timing table, CARRT_T_RC_LOSS_MS). Times use unsigned subtraction: the 32-bit
+ * counters may wrap. */
 #ifndef CARRT_FW_RC_H
 #define CARRT_FW_RC_H
 
 #include <stdint.h>
+
+#include "protocol_generated.h"
 
 #ifdef __cplusplus
 extern "C" {
@@ -22,7 +27,7 @@ extern "C" {
 #define FW_RC_MIN_PERIOD_US 8000u  /* rising edge to rising edge */
 #define FW_RC_MAX_PERIOD_US 30000u
 #define FW_RC_MIN_RUN 5u           /* good pulses in a row before the channel counts */
-#define FW_RC_LOSS_MS 100u         /* no good pulse this long: the signal is lost */
+#define FW_RC_LOSS_MS CARRT_T_RC_LOSS_MS /* no good pulse this long: the signal is lost */
 
 typedef struct fw_rc_channel {
   uint32_t rise_ticks;      /* the last rising edge */

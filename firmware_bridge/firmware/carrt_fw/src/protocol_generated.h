@@ -5,7 +5,7 @@
 
 #include <stdint.h>
 
-#define CARRT_PROTOCOL_HASH 0xB9AE1E23UL
+#define CARRT_PROTOCOL_HASH 0xAF8CF4F4UL
 #define CARRT_SCALE 10000
 #define CARRT_MAX_FRAME_DECODED 64
 #define CARRT_HEADER_SIZE 3
@@ -20,6 +20,7 @@
 #define CARRT_T_STALL_MS 500u /* throttle applied, wheels still for this long: FAILSAFE */
 #define CARRT_T_WHEELS_STOPPED_MS 100u /* no encoder tick for this long: wheels still */
 #define CARRT_T_TELEMETRY_PERIOD_MS 20u /* TELEMETRY every 20 ms (50 Hz) */
+#define CARRT_T_RC_LOSS_MS 100u /* no valid receiver pulse on a channel for this long: its signal is lost */
 
 /* The board's safety state. Only ARMED lets commands reach the outputs. */
 #define CARRT_STATE_DISARMED 0
@@ -37,6 +38,8 @@
 #define CARRT_REASON_DECISION_STALE 6
 #define CARRT_REASON_STALL 7
 #define CARRT_REASON_ARMED_OK 8
+#define CARRT_REASON_RC_SWITCH 9
+#define CARRT_REASON_RC_LOST 10
 
 /* Why the last arm request was refused (0 when the last one succeeded or none came). */
 #define CARRT_ARM_REFUSAL_NONE 0
@@ -44,18 +47,28 @@
 #define CARRT_ARM_REFUSAL_THROTTLE_NOT_NEUTRAL 2
 #define CARRT_ARM_REFUSAL_WHEELS_MOVING 3
 #define CARRT_ARM_REFUSAL_NO_EDGE 4
+#define CARRT_ARM_REFUSAL_RC_NO_SIGNAL 5
+#define CARRT_ARM_REFUSAL_RC_NOT_NEUTRAL 6
 
 /* ConfigResult */
 #define CARRT_CONFIG_RESULT_ACCEPTED 0
 #define CARRT_CONFIG_RESULT_REJECTED_ARMED 1
 #define CARRT_CONFIG_RESULT_REJECTED_INVALID 2
 
+/* Which device holds the person's controls (``Config.controls``). */
+#define CARRT_CONTROLS_PAD 0
+#define CARRT_CONTROLS_RECEIVER 1
+#define CARRT_CONTROLS_BOTH 2
+
 #define CARRT_COMMAND_FLAGS_ESTOP 0x01
 #define CARRT_COMMAND_FLAGS_ARM 0x02
 #define CARRT_COMMAND_FLAGS_CLEAR 0x04
+#define CARRT_COMMAND_FLAGS_AUTO 0x08
 
 #define CARRT_TELEMETRY_FLAGS_CONFIG_FROM_STORAGE 0x01
 #define CARRT_TELEMETRY_FLAGS_LINK_OK 0x02
+#define CARRT_TELEMETRY_FLAGS_RC_SIGNAL 0x04
+#define CARRT_TELEMETRY_FLAGS_RC_DRIVES 0x08
 
 /* Message type ids and payload sizes. */
 #define CARRT_MSG_HELLO_REQUEST 0x01
@@ -69,13 +82,13 @@
 #define CARRT_MSG_COMMAND 0x10
 #define CARRT_MSG_COMMAND_SIZE 9
 #define CARRT_MSG_CONFIG 0x20
-#define CARRT_MSG_CONFIG_SIZE 21
+#define CARRT_MSG_CONFIG_SIZE 30
 #define CARRT_MSG_CONFIG_REQUEST 0x21
 #define CARRT_MSG_CONFIG_REQUEST_SIZE 0
 #define CARRT_MSG_CONFIG_ACK 0x22
 #define CARRT_MSG_CONFIG_ACK_SIZE 4
 #define CARRT_MSG_TELEMETRY 0x30
-#define CARRT_MSG_TELEMETRY_SIZE 28
+#define CARRT_MSG_TELEMETRY_SIZE 34
 
 /* Payload size of a type id, or -1 for an unknown type. */
 static inline int carrt_payload_size(uint8_t type_id) {
@@ -85,10 +98,10 @@ static inline int carrt_payload_size(uint8_t type_id) {
     case 0x03: return 4;
     case 0x04: return 8;
     case 0x10: return 9;
-    case 0x20: return 21;
+    case 0x20: return 30;
     case 0x21: return 0;
     case 0x22: return 4;
-    case 0x30: return 28;
+    case 0x30: return 34;
     default: return -1;
   }
 }
@@ -188,7 +201,7 @@ typedef struct carrt_command {
   int16_t steering; /* -10000 full left .. 10000 full right */
   int16_t throttle; /* -10000 full reverse/brake .. 10000 full forward */
   uint32_t decision_id; /* changes with every new decision of the host's control loop */
-  uint8_t flags; /* bit0 ESTOP, bit1 ARM (level, arms on 0->1 edge), bit2 CLEAR */
+  uint8_t flags; /* bit0 ESTOP, bit1 ARM (level, arms on 0->1 edge), bit2 CLEAR, bit3 AUTO */
 } carrt_command_t;
 
 static inline void carrt_pack_command(const carrt_command_t *msg, uint8_t *out) {
@@ -225,6 +238,11 @@ typedef struct carrt_config {
   uint16_t max_reverse; /* largest reverse/brake throttle allowed, 0..10000 */
   uint32_t slew_per_s; /* throttle rise limit in 1/10000 per second (falls are immediate) */
   uint8_t persist; /* host->mcu: 1 to store in EEPROM/flash; mcu->host: 1 if stored */
+  uint8_t controls; /* the person's controls: 0 pad (no receiver), 1 receiver, 2 both */
+  uint16_t rc_steer_center_us; /* receiver steering pulse with the stick centred */
+  uint16_t rc_throttle_center_us; /* receiver throttle pulse at neutral */
+  uint16_t rc_deadzone_us; /* a stick further than this from its centre has moved */
+  uint16_t rc_estop_us; /* switch channel pulse at or above this: e-stop */
 } carrt_config_t;
 
 static inline void carrt_pack_config(const carrt_config_t *msg, uint8_t *out) {
@@ -259,6 +277,20 @@ static inline void carrt_pack_config(const carrt_config_t *msg, uint8_t *out) {
     out[19] = (uint8_t)(v >> 24); }
   { uint8_t v = (uint8_t)msg->persist;
     out[20] = (uint8_t)(v >> 0); }
+  { uint8_t v = (uint8_t)msg->controls;
+    out[21] = (uint8_t)(v >> 0); }
+  { uint16_t v = (uint16_t)msg->rc_steer_center_us;
+    out[22] = (uint8_t)(v >> 0);
+    out[23] = (uint8_t)(v >> 8); }
+  { uint16_t v = (uint16_t)msg->rc_throttle_center_us;
+    out[24] = (uint8_t)(v >> 0);
+    out[25] = (uint8_t)(v >> 8); }
+  { uint16_t v = (uint16_t)msg->rc_deadzone_us;
+    out[26] = (uint8_t)(v >> 0);
+    out[27] = (uint8_t)(v >> 8); }
+  { uint16_t v = (uint16_t)msg->rc_estop_us;
+    out[28] = (uint8_t)(v >> 0);
+    out[29] = (uint8_t)(v >> 8); }
 }
 static inline void carrt_unpack_config(const uint8_t *in, carrt_config_t *msg) {
   msg->steer_left_us = (uint16_t)(((uint16_t)in[0] << 0) | ((uint16_t)in[1] << 8));
@@ -271,6 +303,11 @@ static inline void carrt_unpack_config(const uint8_t *in, carrt_config_t *msg) {
   msg->max_reverse = (uint16_t)(((uint16_t)in[14] << 0) | ((uint16_t)in[15] << 8));
   msg->slew_per_s = (uint32_t)(((uint32_t)in[16] << 0) | ((uint32_t)in[17] << 8) | ((uint32_t)in[18] << 16) | ((uint32_t)in[19] << 24));
   msg->persist = (uint8_t)(((uint8_t)in[20] << 0));
+  msg->controls = (uint8_t)(((uint8_t)in[21] << 0));
+  msg->rc_steer_center_us = (uint16_t)(((uint16_t)in[22] << 0) | ((uint16_t)in[23] << 8));
+  msg->rc_throttle_center_us = (uint16_t)(((uint16_t)in[24] << 0) | ((uint16_t)in[25] << 8));
+  msg->rc_deadzone_us = (uint16_t)(((uint16_t)in[26] << 0) | ((uint16_t)in[27] << 8));
+  msg->rc_estop_us = (uint16_t)(((uint16_t)in[28] << 0) | ((uint16_t)in[29] << 8));
 }
 
 /* ConfigRequest (0x21, host->mcu) */
@@ -316,12 +353,15 @@ typedef struct carrt_telemetry {
   uint8_t state; /* 0 DISARMED, 1 ARMED, 2 ESTOP, 3 FAILSAFE */
   uint8_t reason; /* why the board is in that state (see Reason) */
   uint8_t arm_refusal; /* why the last arm request was refused (see ArmRefusal) */
-  uint8_t flags; /* bit0 config from storage, bit1 link ok */
+  uint8_t flags; /* bit0 config from storage, bit1 link ok, bit2 receiver signal, bit3 receiver drives */
   uint16_t bad_crc; /* frames dropped for a bad CRC (saturating) */
   uint16_t bad_length; /* frames dropped: malformed COBS, unknown type or wrong length */
   uint16_t overruns; /* frames dropped because they outgrew the receive buffer */
   uint16_t last_seq; /* sequence number of the last accepted host frame */
   uint32_t decision_id; /* decision id of the last accepted COMMAND */
+  uint16_t rc_steer_us; /* receiver steering pulse (0: no valid signal) */
+  uint16_t rc_throttle_us; /* receiver throttle pulse (0: no valid signal) */
+  uint16_t rc_switch_us; /* receiver switch-channel pulse (0: no valid signal) */
 } carrt_telemetry_t;
 
 static inline void carrt_pack_telemetry(const carrt_telemetry_t *msg, uint8_t *out) {
@@ -366,6 +406,15 @@ static inline void carrt_pack_telemetry(const carrt_telemetry_t *msg, uint8_t *o
     out[25] = (uint8_t)(v >> 8);
     out[26] = (uint8_t)(v >> 16);
     out[27] = (uint8_t)(v >> 24); }
+  { uint16_t v = (uint16_t)msg->rc_steer_us;
+    out[28] = (uint8_t)(v >> 0);
+    out[29] = (uint8_t)(v >> 8); }
+  { uint16_t v = (uint16_t)msg->rc_throttle_us;
+    out[30] = (uint8_t)(v >> 0);
+    out[31] = (uint8_t)(v >> 8); }
+  { uint16_t v = (uint16_t)msg->rc_switch_us;
+    out[32] = (uint8_t)(v >> 0);
+    out[33] = (uint8_t)(v >> 8); }
 }
 static inline void carrt_unpack_telemetry(const uint8_t *in, carrt_telemetry_t *msg) {
   msg->mcu_time_ms = (uint32_t)(((uint32_t)in[0] << 0) | ((uint32_t)in[1] << 8) | ((uint32_t)in[2] << 16) | ((uint32_t)in[3] << 24));
@@ -381,6 +430,9 @@ static inline void carrt_unpack_telemetry(const uint8_t *in, carrt_telemetry_t *
   msg->overruns = (uint16_t)(((uint16_t)in[20] << 0) | ((uint16_t)in[21] << 8));
   msg->last_seq = (uint16_t)(((uint16_t)in[22] << 0) | ((uint16_t)in[23] << 8));
   msg->decision_id = (uint32_t)(((uint32_t)in[24] << 0) | ((uint32_t)in[25] << 8) | ((uint32_t)in[26] << 16) | ((uint32_t)in[27] << 24));
+  msg->rc_steer_us = (uint16_t)(((uint16_t)in[28] << 0) | ((uint16_t)in[29] << 8));
+  msg->rc_throttle_us = (uint16_t)(((uint16_t)in[30] << 0) | ((uint16_t)in[31] << 8));
+  msg->rc_switch_us = (uint16_t)(((uint16_t)in[32] << 0) | ((uint16_t)in[33] << 8));
 }
 
 #endif /* CARRT_PROTOCOL_GENERATED_H */
