@@ -115,7 +115,7 @@ AVR_CXXFLAGS := $(AVR_FLAGS) -std=gnu++11 -fno-exceptions -fno-threadsafe-static
 AVR_CORE_SRC := $(wildcard $(ARDUINO_AVR)/cores/arduino/*.c $(ARDUINO_AVR)/cores/arduino/*.cpp \
 	$(ARDUINO_AVR)/cores/arduino/*.S)
 AVR_CORE_OBJ := $(patsubst $(ARDUINO_AVR)/cores/arduino/%,$(FW_BUILD)/arduino/%.o,$(AVR_CORE_SRC))
-FW_CORE_OBJ := $(FW_BUILD)/src/fw_core.o $(FW_BUILD)/src/fw_frame.o
+FW_CORE_OBJ := $(FW_BUILD)/src/fw_core.o $(FW_BUILD)/src/fw_frame.o $(FW_BUILD)/src/fw_rc.o
 FW_HEADERS := $(wildcard $(AVR_SRC)/*.h)
 
 firmware: $(FW_ELF)

@@ -85,7 +85,8 @@ class Event:
     """Something the emulator saw, stamped with the emulated cycle it happened at.
 
     kind: "L" ARMED LED level (value 0/1), "F" a host frame's 0x00 delimiter entered the UART,
-    "A"/"B" steering/ESC pulse width changed (value in cycles), "R" emulated reset.
+    "A"/"B" steering/ESC pulse width changed (value in cycles), "R" emulated reset, "W" a
+    receiver channel's (value) first pulse with a new width ended, "O" its train stopped.
     """
 
     kind: str
@@ -204,10 +205,11 @@ class AvrEmulator:
         _, _, a, _, b = self.ask("pulses").split()
         return int(a), int(b)
 
-    def busy(self) -> tuple[BusyPin, BusyPin]:
-        """CPU time in fw_core_rx (D12) and fw_core_tick (D11) since the last call."""
+    def busy(self) -> tuple[BusyPin, BusyPin, BusyPin]:
+        """CPU time in fw_core_rx (D12), fw_core_tick (D11) and handing receiver edges to the
+        core (D8) since the last call."""
         v = [int(x) for x in self.ask("busy").split()[1:]]
-        return BusyPin(*v[0:3]), BusyPin(*v[3:6])
+        return BusyPin(*v[0:3]), BusyPin(*v[3:6]), BusyPin(*v[6:9])
 
     def take_events(self) -> list[Event]:
         """The events since the last call (the emulator keeps up to 16384 in between)."""
@@ -223,6 +225,22 @@ class AvrEmulator:
     def set_encoder_hz(self, rising_edges_per_s: float) -> None:
         """Drive PD2 (INT0) with a square wave of this many rising edges per second."""
         self.ask(f"encoder {max(0.0, rising_edges_per_s):.3f}")
+
+    def rc_train(
+        self, channel: int, width_us: float, period_us: float = 20_000.0, phase_us: float = 0.0
+    ) -> None:
+        """Drive a receiver pin (0 steering D4, 1 throttle D5, 2 switch D6) with pulses of
+        width_us every period_us, the first after phase_us. A running train takes a new width
+        at its next pulse and logs a W event (value: channel) at that pulse's falling edge."""
+        self.ask(f"rc {int(channel)} {width_us:.3f} {period_us:.3f} {phase_us:.3f}")
+
+    def rc_off(self, channel: int) -> None:
+        """Stop a receiver train after the pulse in flight (an O event at its falling edge)."""
+        self.ask(f"rc {int(channel)} off")
+
+    def rc_noise(self, channel: int, mean_gap_us: float, seed: int) -> None:
+        """Random edges on a receiver pin, 1 .. 2 * mean_gap_us apart."""
+        self.ask(f"rc {int(channel)} noise {mean_gap_us:.3f} {int(seed)}")
 
     def reset(self) -> None:
         """Press the reset button: RAM and registers start over, EEPROM is kept."""

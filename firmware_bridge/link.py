@@ -85,6 +85,7 @@ class BoardLink:
         self._estop_latched = False
         self._clear_pending = False
         self._want_arm = False
+        self._auto = False
         self._arm_sent_seq: int | None = None
         self._clear_sent_seq: int | None = None
         self.last_arm_refusal: m.ArmRefusal | None = None
@@ -238,6 +239,13 @@ class BoardLink:
         if send_now and self._write_command():
             return self.clock()
         return None
+
+    def set_auto(self, auto: bool) -> None:
+        """Tell the board whether the policy drives (the COMMAND's AUTO flag): with a receiver
+        wired, a stick then takes over on the board, and the flag's next 0 -> 1 edge hands the
+        wheels back to the policy."""
+        with self._state_lock:
+            self._auto = bool(auto)
 
     def request_arm(self) -> None:
         """Ask to arm without waiting (the control loop must not block); see `arm`."""
@@ -415,6 +423,8 @@ class BoardLink:
                 flags = m.CommandFlags.CLEAR
             elif self._want_arm:
                 flags = m.CommandFlags.ARM
+                if self._auto:
+                    flags |= m.CommandFlags.AUTO
             command = m.Command(
                 steering=self._steering,
                 throttle=self._throttle,
@@ -422,7 +432,7 @@ class BoardLink:
                 flags=flags,
             )
             seq = self._next_seq()
-            if flags == m.CommandFlags.ARM and self._arm_sent_seq is None:
+            if flags & m.CommandFlags.ARM and self._arm_sent_seq is None:
                 self._arm_sent_seq = seq
             if flags == m.CommandFlags.CLEAR and self._clear_sent_seq is None:
                 self._clear_sent_seq = seq

@@ -9,19 +9,30 @@
  *     recorded
  *     with its cycle, so pulse widths and watchdog delays are measured in emulated time;
  *   - PD2 (INT0, wheel encoder) driven with a square wave at a commanded rate;
+ *   - PD4/PD5/PD6 (the RC receiver's steering, throttle and switch channels) driven with pulse
+ *     trains of a commanded width, period and phase, or with random edges (noise);
  *   - a reset that keeps EEPROM, and EEPROM saved to / loaded from a file.
  *
  * Control channel: one command per line on stdin, one reply line on stdout (firmware_bridge/
  * avr_emulator.py speaks it). The first line out is "ready <pty path>".
  *   time            -> "time <cycle> <lag_us>"   (lag: how far emulation trails wall time)
  *   pulses          -> "pulses <A width> <A count> <B width> <B count>" (widths in cycles)
- *   busy            -> "busy <rx total> <rx count> <rx max> <tick total> <tick count> <tick max>"
- *                      cycles PB4 (fw_core_rx) / PB3 (fw_core_tick) were high since the last
- *                      busy, how often they went high, the longest; then starts over
+ *   busy            -> "busy <rx total> <rx count> <rx max> <tick ...> <rc ...>" (3 each)
+ *                      cycles PB4 (fw_core_rx) / PB3 (fw_core_tick) / PB0 (receiver edges)
+ *                      were high since the last busy, how often they went high, the longest;
+ *                      then starts over
  *   events          -> "events <dropped> <kind><value>@<cycle> ..." and clears the log; kinds:
  *                      L ARMED LED level, F host frame delimiter into the UART, A/B pulse width
- *                      changed (cycles), R reset
+ *                      changed (cycles), R reset, W/O receiver width taken / train stopped
  *   encoder <hz>    -> "ok" (rising edges per second on PD2; 0 stops)
+ *   rc <ch> <width_us> <period_us> <phase_us>
+ *                   -> "ok": receiver channel ch (0 steering PD4, 1 throttle PD5, 2 switch PD6)
+ *                      sends pulses of width_us every period_us; a running train takes a new
+ *                      width at its next rising edge (never cutting a pulse) and logs W<ch> at
+ *                      the falling edge of the first pulse with it; phase: first rise from now
+ *   rc <ch> off     -> "ok": the train stops after the pulse in flight (line low); O<ch> is
+ *                      logged at its last falling edge
+ *   rc <ch> noise <mean_gap_us> <seed> -> "ok": random edges, gaps 1 .. 2*mean_gap_us
  *   reset           -> "ok" (emulated reset, EEPROM kept)
  *   eeprom          -> "eeprom <hex of the first 64 bytes>"
  *   quit / EOF      -> EEPROM saved, exit 0 */
@@ -84,23 +95,25 @@ typedef struct {
   uint64_t max;   /* longest high */
   int high;
 } busy_pin_t;
-static busy_pin_t busy[2]; /* PB4: fw_core_rx() runs, PB3: fw_core_tick() runs */
+static busy_pin_t busy[3]; /* PB4: fw_core_rx(), PB3: fw_core_tick(), PB0: receiver edges */
 static double encoder_hz;
 static double encoder_next;  /* cycle of the next PD2 toggle */
 static int encoder_level = 1;
 static const char *eeprom_path;
 static volatile sig_atomic_t stop_requested;
 
-static void log_event(char kind, uint64_t value) {
+static void log_event_at(char kind, uint64_t value, uint64_t cycle) {
   if (event_len == EVENT_CAPACITY) {
     events_dropped++;
     return;
   }
   events[event_len].kind = kind;
-  events[event_len].cycle = avr->cycle;
+  events[event_len].cycle = cycle;
   events[event_len].value = value;
   event_len++;
 }
+
+static void log_event(char kind, uint64_t value) { log_event_at(kind, value, avr->cycle); }
 
 /* ------------------------------------------------------------------ pins */
 
@@ -210,6 +223,115 @@ static void set_encoder(double hz) {
     avr_cycle_timer_register(avr, (avr_cycle_count_t)((double)F_CPU / (2.0 * hz)),
                              encoder_toggle, NULL);
   }
+}
+
+/* ------------------------------------------------------------------ RC receiver */
+
+enum { RC_OFF, RC_TRAIN, RC_STOPPING, RC_NOISE };
+
+typedef struct {
+  int mode;
+  int level;
+  uint64_t width;     /* cycles, of the pulse in flight */
+  uint64_t next_width;
+  uint64_t period;    /* cycles */
+  uint64_t rise;      /* cycle of the last rising edge */
+  uint64_t fall;      /* cycle of the last falling edge */
+  uint64_t gap_mean;  /* noise: mean cycles between edges */
+  unsigned seed;
+  int announce;       /* log W at this pulse's falling edge */
+  avr_irq_t *pin;
+} rc_channel_t;
+
+static rc_channel_t rc[3];
+
+static avr_cycle_count_t rc_edge(struct avr_t *a, avr_cycle_count_t when, void *param) {
+  (void)a;
+  rc_channel_t *c = &rc[(intptr_t)param];
+  if (c->mode == RC_NOISE) {
+    c->level = !c->level;
+    avr_raise_irq(c->pin, (uint32_t)c->level);
+    return when + 1u + (uint64_t)(rand_r(&c->seed) % (unsigned)(2u * c->gap_mean));
+  }
+  if (!c->level) { /* rising edge */
+    if (c->mode != RC_TRAIN) {
+      c->mode = RC_OFF;
+      return 0;
+    }
+    c->level = 1;
+    avr_raise_irq(c->pin, 1);
+    c->rise = when;
+    c->announce = c->next_width != c->width;
+    c->width = c->next_width;
+    return when + c->width;
+  }
+  c->level = 0; /* falling edge */
+  c->fall = when;
+  avr_raise_irq(c->pin, 0);
+  if (c->announce) {
+    log_event('W', (uint64_t)(intptr_t)param);
+    c->announce = 0;
+  }
+  if (c->mode == RC_STOPPING) {
+    log_event('O', (uint64_t)(intptr_t)param);
+    c->mode = RC_OFF;
+    return 0;
+  }
+  return c->rise + c->period;
+}
+
+static void rc_command(char *args) {
+  int ch = atoi(args);
+  char *rest = strchr(args, ' ');
+  if (ch < 0 || ch > 2 || rest == NULL) {
+    printf("error usage: rc <0-2> <width_us> <period_us> <phase_us> | off | noise <gap_us> <seed>\n");
+    return;
+  }
+  rest++;
+  rc_channel_t *c = &rc[ch];
+  void *param = (void *)(intptr_t)ch;
+  if (strncmp(rest, "off", 3) == 0) {
+    if (c->mode == RC_TRAIN && c->level) {
+      c->mode = RC_STOPPING; /* the pulse in flight ends normally */
+    } else {
+      avr_cycle_timer_cancel(avr, rc_edge, param);
+      if (c->mode == RC_TRAIN) {
+        log_event_at('O', (uint64_t)ch, c->fall); /* the last pulse ended then */
+      }
+      c->mode = RC_OFF;
+      c->level = 0;
+      avr_raise_irq(c->pin, 0);
+    }
+  } else if (strncmp(rest, "noise ", 6) == 0) {
+    double gap_us = 0;
+    unsigned seed = 0;
+    sscanf(rest + 6, "%lf %u", &gap_us, &seed);
+    avr_cycle_timer_cancel(avr, rc_edge, param);
+    c->mode = RC_NOISE;
+    c->seed = seed;
+    c->gap_mean = (uint64_t)(gap_us * (F_CPU / 1000000u));
+    if (c->gap_mean < 1u) {
+      c->gap_mean = 1u;
+    }
+    avr_cycle_timer_register(avr, 1, rc_edge, param);
+  } else {
+    double width_us = 0, period_us = 0, phase_us = 0;
+    sscanf(rest, "%lf %lf %lf", &width_us, &period_us, &phase_us);
+    c->next_width = (uint64_t)(width_us * (F_CPU / 1000000u) + 0.5);
+    c->period = (uint64_t)(period_us * (F_CPU / 1000000u) + 0.5);
+    if (c->mode != RC_TRAIN && c->mode != RC_STOPPING) {
+      avr_cycle_timer_cancel(avr, rc_edge, param);
+      if (c->level) {
+        c->level = 0;
+        avr_raise_irq(c->pin, 0);
+      }
+      c->width = 0;
+      avr_cycle_timer_register(avr, 1u + (avr_cycle_count_t)(phase_us * (F_CPU / 1000000u)),
+                               rc_edge, param);
+    }
+    c->mode = RC_TRAIN;
+  }
+  printf("ok\n");
 }
 
 /* ------------------------------------------------------------------ UART <-> pty */
@@ -330,7 +452,7 @@ static void handle_command(char *line) {
            (unsigned long long)pulse[1].count);
   } else if (strcmp(line, "busy") == 0) {
     printf("busy");
-    for (int i = 0; i < 2; i++) {
+    for (int i = 0; i < 3; i++) {
       printf(" %llu %llu %llu", (unsigned long long)busy[i].total,
              (unsigned long long)busy[i].count, (unsigned long long)busy[i].max);
     }
@@ -341,6 +463,8 @@ static void handle_command(char *line) {
   } else if (strncmp(line, "encoder ", 8) == 0) {
     set_encoder(atof(line + 8));
     printf("ok\n");
+  } else if (strncmp(line, "rc ", 3) == 0) {
+    rc_command(line + 3);
   } else if (strcmp(line, "reset") == 0) {
     emulated_reset();
     printf("ok\n");
@@ -516,10 +640,17 @@ int main(int argc, char **argv) {
                           on_pulse_pin, (void *)(intptr_t)1);
   connect_pin('B', 4, on_busy_pin, (void *)(intptr_t)0);
   connect_pin('B', 3, on_busy_pin, (void *)(intptr_t)1);
+  connect_pin('B', 0, on_busy_pin, (void *)(intptr_t)2);
   connect_pin('B', 5, on_led_pin, NULL);
   hook_ocr_writes();
   pd2 = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('D'), 2);
   avr_raise_irq(pd2, 1); /* the encoder line idles high, like the pull-up */
+  for (int i = 0; i < 3; i++) {
+    rc[i].pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('D'), 4 + i);
+    avr_raise_irq(rc[i].pin, 1); /* no receiver: the pull-ups hold the lines high */
+    rc[i].level = 1;
+    rc[i].mode = RC_OFF;
+  }
 
   signal(SIGTERM, on_signal);
   signal(SIGINT, on_signal);

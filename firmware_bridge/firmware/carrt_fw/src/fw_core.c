@@ -232,9 +232,9 @@ static void rc_outputs(fw_core_t *core, uint16_t *steer, uint16_t *throttle) {
                            c->throttle_forward_us);
   uint16_t rev = map_pulse(-(int32_t)c->max_reverse, c->throttle_reverse_us,
                            c->throttle_neutral_us, c->throttle_forward_us);
-  *steer = clamp_between(fw_rc_width_us(&core->rc[FW_RC_STEERING]), c->steer_left_us,
+  *steer = clamp_between(fw_rc_steady_us(&core->rc[FW_RC_STEERING]), c->steer_left_us,
                          c->steer_right_us);
-  *throttle = clamp_between(fw_rc_width_us(&core->rc[FW_RC_THROTTLE]), rev, fwd);
+  *throttle = clamp_between(fw_rc_steady_us(&core->rc[FW_RC_THROTTLE]), rev, fwd);
   core->applied_throttle =
       unmap_pulse(*throttle, c->throttle_reverse_us, c->throttle_neutral_us, c->throttle_forward_us);
 }
@@ -353,9 +353,9 @@ static void send_telemetry(fw_core_t *core, uint32_t now_ms) {
   t.overruns = core->rx.overruns;
   t.last_seq = core->last_seq;
   t.decision_id = core->decision_id;
-  t.rc_steer_us = fw_rc_width_us(&core->rc[FW_RC_STEERING]);
-  t.rc_throttle_us = fw_rc_width_us(&core->rc[FW_RC_THROTTLE]);
-  t.rc_switch_us = fw_rc_width_us(&core->rc[FW_RC_SWITCH]);
+  t.rc_steer_us = fw_rc_steady_us(&core->rc[FW_RC_STEERING]);
+  t.rc_throttle_us = fw_rc_steady_us(&core->rc[FW_RC_THROTTLE]);
+  t.rc_switch_us = fw_rc_steady_us(&core->rc[FW_RC_SWITCH]);
   if (rc_signal(core)) {
     t.flags |= CARRT_TELEMETRY_FLAGS_RC_SIGNAL;
   }

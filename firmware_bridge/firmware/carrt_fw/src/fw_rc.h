@@ -9,7 +9,15 @@
  * width, as a receiver's own failsafe holds its last frame: one glitch on the wire must not stop
  * a car. It stops being valid when no good pulse came for FW_RC_LOSS_MS (polled every tick; the
  * protocol's timing table, CARRT_T_RC_LOSS_MS). Times use unsigned subtraction: the 32-bit
- * counters may wrap. */
+ * counters may wrap.
+ *
+ * Two widths come out. The rules (deadzone, switch) use the last good pulse as measured, so a
+ * stick is seen at its very pulse. The outputs use a steadied width: an edge's timestamp is late
+ * by however long another interrupt (the millisecond timer, the UART) held the pin-change
+ * interrupt off (the UART's, the millisecond timer's), a few microseconds now and then; so a
+ * width within FW_RC_JITTER_US of the one already passed through is replaced by the median of
+ * the last FW_RC_MEDIAN pulses (two late edges in five never reach the servo), while a larger
+ * step is passed through at once. */
 #ifndef CARRT_FW_RC_H
 #define CARRT_FW_RC_H
 
@@ -27,12 +35,16 @@ extern "C" {
 #define FW_RC_MIN_PERIOD_US 8000u  /* rising edge to rising edge */
 #define FW_RC_MAX_PERIOD_US 30000u
 #define FW_RC_MIN_RUN 5u           /* good pulses in a row before the channel counts */
+#define FW_RC_JITTER_US 12u        /* two interrupts back to back, at most, delay an edge */
+#define FW_RC_MEDIAN 5u
 #define FW_RC_LOSS_MS CARRT_T_RC_LOSS_MS /* no good pulse this long: the signal is lost */
 
 typedef struct fw_rc_channel {
   uint32_t rise_ticks;      /* the last rising edge */
   uint32_t last_good_ms;    /* when the last good pulse ended */
   uint16_t width_us;        /* the last good pulse's width */
+  uint16_t recent_us[FW_RC_MEDIAN]; /* the last good widths, newest first (0: none yet) */
+  uint16_t steady_us;       /* the width for the outputs (see above) */
   uint8_t high;             /* a rising edge came and its falling edge has not */
   uint8_t have_rise;        /* a previous rising edge exists (for the period) */
   uint8_t period_ok;        /* the period to the pulse now high was in range */
@@ -47,7 +59,8 @@ void fw_rc_edge(fw_rc_channel_t *ch, uint8_t level, uint32_t ticks, uint32_t now
 /* Every tick: the signal-loss rule. */
 void fw_rc_poll(fw_rc_channel_t *ch, uint32_t now_ms);
 uint8_t fw_rc_valid(const fw_rc_channel_t *ch);
-uint16_t fw_rc_width_us(const fw_rc_channel_t *ch); /* 0 while not valid */
+uint16_t fw_rc_width_us(const fw_rc_channel_t *ch);  /* 0 while not valid */
+uint16_t fw_rc_steady_us(const fw_rc_channel_t *ch); /* 0 while not valid */
 
 #ifdef __cplusplus
 }
