@@ -41,7 +41,7 @@ class Trial:
     latency_ms: float  # cause (receiver pulse end) to the output pulse that obeys it
     first_error_us: float = 0.0  # that pulse's width minus the receiver's (edge-stamp jitter)
     width_error_us: float = 0.0  # passthrough once steady: output width minus the receiver's
-    still_armed: bool = True  # the board still drives afterwards (take-over with a frozen host)
+    still_armed: bool | None = None  # take-over: the board still drives afterwards
 
 
 class Rig:
@@ -189,8 +189,9 @@ def summary(results: dict[str, list[Trial]]) -> dict:
             "latency_ms_max": round(lat[-1], 3),
             "first_pulse_error_us_max": round(max(abs(t.first_error_us) for t in runs), 3),
             "steady_width_error_us_max": round(max(abs(t.width_error_us) for t in runs), 3),
-            "still_armed": sum(t.still_armed for t in runs),
         }
+        if runs[0].still_armed is not None:
+            out[name]["still_armed"] = sum(bool(t.still_armed) for t in runs)
     return out
 
 

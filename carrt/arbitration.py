@@ -59,6 +59,7 @@ class ArbiterInputs:
     plan_action: tuple[float, float] | None = None  # μ of the plan computed this tick
     fallback_action: tuple[float, float] | None = None  # next step of the previous plan
     board_reason: int = 0  # messages.Reason, only used to explain a failsafe
+    board_takeover: bool = False  # the board reports the receiver driving (a stick took over)
 
 
 @dataclass(frozen=True)
@@ -234,7 +235,7 @@ class Arbiter:
                 refused = "auto refused: arm first"
         elif ev.arm:
             disarm = self._disarm("disarmed by the human")
-        elif self._mode == Mode.AUTO and moved:
+        elif self._mode == Mode.AUTO and (moved or inp.board_takeover):
             self._mode = Mode.MANUAL
             self._interventions += 1
             override = True

@@ -1,5 +1,7 @@
 """`carrt calibrate`: find the servo and ESC pulses of this car, interactively, through the link.
 
+(`--receiver` learns the RC transmitter's instead: carrt/calibrate_receiver.py.)
+
 Each adjustment goes the only way the board allows: disarm, send the candidate CONFIG (it
 refuses changes while armed), arm again with neutral throttle, and hold the command that shows
 the value (straight ahead, full left, ...). A feeder thread keeps sending fresh decisions, so
@@ -10,15 +12,14 @@ the car's TOML (only the [pwm] keys are touched, comments kept) and into the boa
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 import threading
-import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TextIO
 
 from carrt import config as car_config
+from carrt.calibration_io import disarm_and_wait, update_toml_section
 from carrt.errors import UserError
 from firmware_bridge import messages as m
 from firmware_bridge.link import BoardLink, LinkError
@@ -71,21 +72,10 @@ class _Feeder:
         self.link.set_command(0.0, 0.0)
 
 
-def _disarm_and_wait(link: BoardLink, timeout_s: float = 1.0) -> None:
-    """Disarm now and wait until the board says so: it refuses CONFIG while armed."""
-    link.disarm()
-    link.set_command(0.0, 0.0, send_now=True)
-    deadline = time.monotonic() + timeout_s
-    while link.board_state == m.State.ARMED:
-        if time.monotonic() > deadline:
-            raise UserError("board stayed armed after a disarm request")
-        time.sleep(0.005)
-
-
 def _show(link: BoardLink, feeder: _Feeder, board: m.Config, step: CalibrationStep) -> str | None:
     """Apply a candidate config and hold the step's command; return an error text or None."""
     feeder.command = (0.0, 0.0)
-    _disarm_and_wait(link)
+    disarm_and_wait(link)
     ack = link.send_config(board)
     if ack.result != m.ConfigResult.ACCEPTED:
         return f"board refused it ({m.ConfigResult(ack.result).name.lower().replace('_', ' ')})"
@@ -152,35 +142,17 @@ def calibrate(
     return config
 
 
-def update_toml_section(text: str, section: str, values: dict[str, object]) -> str:
-    """Set keys in one [section] of a TOML text, keeping every other line and comment."""
-    lines = text.splitlines()
-    start = next((i for i, ln in enumerate(lines) if ln.strip() == f"[{section}]"), None)
-    if start is None:
-        lines += ["", f"[{section}]"]
-        start = len(lines) - 1
-    end = next(
-        (i for i in range(start + 1, len(lines)) if lines[i].lstrip().startswith("[")), len(lines)
-    )
-    for key, value in values.items():
-        pattern = re.compile(rf"^(\s*{re.escape(key)}\s*=\s*)([^#]*?)(\s*#.*)?$")
-        for i in range(start + 1, end):
-            match = pattern.match(lines[i])
-            if match:
-                lines[i] = f"{match.group(1)}{value}{match.group(3) or ''}"
-                break
-        else:
-            lines.insert(end, f"{key} = {value}")
-            end += 1
-    return "\n".join(lines) + "\n"
-
-
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "calibrate", help="find steering and throttle pulses interactively (car on a stand)"
     )
     parser.add_argument("--config", required=True, help="car TOML to update")
     parser.add_argument("--port", help="serial port (overrides serial.port)")
+    parser.add_argument(
+        "--receiver",
+        action="store_true",
+        help="learn the RC transmitter's endpoints, centres and e-stop switch instead",
+    )
     parser.add_argument(
         "--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
         help="override a key of the config being calibrated (repeatable)",
@@ -193,13 +165,18 @@ def run(args: argparse.Namespace, stdin: TextIO | None = None, stdout: TextIO | 
     overrides = list(args.set) + ([f'serial.port="{args.port}"'] if args.port else [])
     config = car_config.load(args.config, overrides)
     link = BoardLink(config.serial.port, config.serial.baud)
+    if getattr(args, "receiver", False):
+        from carrt import calibrate_receiver
+
+        with link:
+            return calibrate_receiver.run(link, config, Path(args.config), stdin, stdout)
     with link:
         print(f"calibrating the board on {config.serial.port}: put the car on a stand", file=stdout)
         result = calibrate(link, config, stdin, stdout)
         if result is None:
             return 1
         car_config.from_dict(result.to_dict())  # the combination must still be valid
-        _disarm_and_wait(link)
+        disarm_and_wait(link)
         ack = link.send_config(car_config.board_config(result, persist=True))
         if ack.result != m.ConfigResult.ACCEPTED or not ack.persisted:
             raise UserError("board did not store the calibration (is it armed, or has no EEPROM?)")

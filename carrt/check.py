@@ -106,6 +106,7 @@ def run_check(
         f"steering {tel.steer_us} us, throttle {tel.throttle_us} us",
     )
 
+    report.add(*_receiver_line(link, tel))
     if spin_wheels:
         report.add(*_spin_test(link))
     else:
@@ -128,6 +129,31 @@ def run_check(
             + f"; host bad crc {link.counters.bad_crc}, bad length {link.counters.bad_length}",
         )
     return report
+
+
+def _receiver_line(link: BoardLink, tel: m.Telemetry) -> tuple[str, bool, str]:
+    """The RC receiver's signal; missing is a failure only when the board is configured to
+    take the person's controls from it."""
+    try:
+        controls = m.Controls(link.read_config().controls)
+    except (LinkError, ValueError):
+        controls = None
+    named = controls.name.lower() if controls is not None else "unknown"
+    if tel.flags & m.TelemetryFlags.RC_SIGNAL:
+        return (
+            "receiver",
+            True,
+            f"signal: steering {tel.rc_steer_us} us, throttle {tel.rc_throttle_us} us, switch "
+            f"{tel.rc_switch_us} us; the person's controls: {named}",
+        )
+    if controls in (None, m.Controls.PAD):
+        return "receiver", True, f"no signal (the person's controls: {named})"
+    return (
+        "receiver",
+        False,
+        f"no signal, and the board takes the person's controls from it ({named}): is the "
+        "transmitter on, the receiver bound and wired to D4-D6?",
+    )
 
 
 def _board_counters(tel: m.Telemetry) -> dict[str, int]:

@@ -124,6 +124,41 @@ class JoystickConfig:
 
 
 @dataclass
+class ReceiverConfig:
+    """The car's own RC receiver wired to the board (D4 steering, D5 throttle, D6 switch), and
+    which device holds the person's controls. `carrt calibrate --receiver` fills in the pulses."""
+
+    controls: str = opt(
+        "pad", "the person's controls: the game pad, the RC receiver, or both (a receiver stick "
+        "then takes over on the board)", choices=("pad", "receiver", "both"),
+    )  # fmt: skip
+    steer_left_us: int = opt(1000, "receiver steering pulse at full left", lo=800, hi=2200)
+    steer_center_us: int = opt(
+        1500, "receiver steering pulse with the stick centred", lo=800, hi=2200
+    )
+    steer_right_us: int = opt(2000, "receiver steering pulse at full right", lo=800, hi=2200)
+    throttle_reverse_us: int = opt(1000, "receiver throttle pulse at full brake", lo=800, hi=2200)
+    throttle_neutral_us: int = opt(1500, "receiver throttle pulse at neutral", lo=800, hi=2200)
+    throttle_forward_us: int = opt(
+        2000, "receiver throttle pulse at full throttle", lo=800, hi=2200
+    )
+    deadzone_us: int = opt(
+        60, "a stick further than this from its centre has moved (and takes over in AUTO)",
+        lo=10, hi=500,
+    )  # fmt: skip
+    estop_us: int = opt(
+        1700, "the switch channel at or above this pulse is its e-stop position", lo=800, hi=2200
+    )
+    gesture_s: float = opt(
+        1.0, "arm: steering held full right this long, then let go", lo=0.3, hi=5.0
+    )
+    release_s: float = opt(
+        0.5, "drive: both sticks let go this long after a take-over gives the wheels back to "
+        "the policy", lo=0.2, hi=5.0,
+    )  # fmt: skip
+
+
+@dataclass
 class NoiseConfig:
     fraction: float = opt(
         0.5, "share of recording time with noise injected (the paper: half)", lo=0.0, hi=1.0
@@ -178,6 +213,7 @@ class CarConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     joystick: JoystickConfig = field(default_factory=JoystickConfig)
+    receiver: ReceiverConfig = field(default_factory=ReceiverConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     episodes: EpisodesConfig = field(default_factory=EpisodesConfig)
@@ -247,6 +283,17 @@ def _check_consistency(config: CarConfig) -> None:
         or not lo <= pwm.throttle_neutral_us <= hi
     ):
         raise UserError("config pwm.throttle_neutral_us: must lie between reverse and forward")
+    rc = config.receiver
+    for name, (low, mid, high) in {
+        "steer_center_us": (rc.steer_left_us, rc.steer_center_us, rc.steer_right_us),
+        "throttle_neutral_us": (rc.throttle_reverse_us, rc.throttle_neutral_us,
+                                rc.throttle_forward_us),
+    }.items():  # fmt: skip
+        lo, hi = sorted((low, high))
+        if not lo + rc.deadzone_us < mid < hi - rc.deadzone_us:
+            raise UserError(
+                f"config receiver.{name}: must lie between its endpoints, a deadzone from each"
+            )
     if config.noise.hold_min_s > config.noise.hold_max_s:
         raise UserError("config noise.hold_min_s: must not exceed noise.hold_max_s")
     if config.camera.crop_top + config.camera.crop_bottom >= 0.95:
@@ -344,4 +391,9 @@ def board_config(config: CarConfig, persist: bool = False) -> Any:
         max_reverse=round(pwm.max_reverse * m.SCALE),
         slew_per_s=round(pwm.slew_per_s * m.SCALE),
         persist=1 if persist else 0,
+        controls=int(m.Controls[config.receiver.controls.upper()]),
+        rc_steer_center_us=config.receiver.steer_center_us,
+        rc_throttle_center_us=config.receiver.throttle_neutral_us,
+        rc_deadzone_us=config.receiver.deadzone_us,
+        rc_estop_us=config.receiver.estop_us,
     )

@@ -239,6 +239,9 @@ class ControlLoop:
         """The arbiter decides what may be sent; noise injection perturbs what is executed."""
         parts, frame = self.parts, tick.frame
         tick.now = now = parts.clock.now()
+        receiver_drives = bool(
+            tick.telemetry and tick.telemetry.telemetry.flags & m.TelemetryFlags.RC_DRIVES
+        )
         tick.decision = decision = self.arbiter.step(
             ArbiterInputs(
                 now=now,
@@ -250,6 +253,7 @@ class ControlLoop:
                 plan_action=tick.plan_action,
                 fallback_action=tick.fallback_action,
                 board_reason=tick.telemetry.telemetry.reason if tick.telemetry else 0,
+                board_takeover=receiver_drives,
             )
         )
         self._report(decision)
@@ -258,13 +262,21 @@ class ControlLoop:
             self._collision_ended = False  # a later e-stop by hand is not this collision
         tick.executed = (decision.steering, decision.throttle)
         noise = parts.noise
-        if noise is not None and self.episodes.recording and noise.perturbs(decision.mode):
+        # while the board drives the receiver's pulses straight through, nothing the host adds
+        # reaches the wheels: no noise is injected (or recorded as executed) then
+        if (
+            noise is not None
+            and self.episodes.recording
+            and noise.perturbs(decision.mode)
+            and not receiver_drives
+        ):
             ns, nt, tick.noisy = noise.sample(now)
             if tick.noisy:
                 tick.executed = noise.apply(tick.executed, (ns, nt))
 
     def _actuate(self, tick: Tick) -> None:
         self._forward_requests(tick.decision)
+        self.parts.link.set_auto(tick.decision.mode == Mode.AUTO)
         sent_at = self.parts.link.set_command(*tick.executed, send_now=True)
         tick.sent_at = math.nan if sent_at is None else sent_at
         if sent_at is not None and tick.frame is not None:

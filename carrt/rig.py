@@ -76,13 +76,39 @@ def open_car_rig(
     )
     link.open()
     stack.callback(link.close)
+    clock = WallClock()
     return Rig(
-        clock=WallClock(),
+        clock=clock,
         camera=camera,
         link=link,
-        joystick=PygameJoystick(config.joystick),
-        describe=f"board on {config.serial.port}, camera {config.camera.source}",
+        joystick=person_controls(
+            config, link, clock, lambda: PygameJoystick(config.joystick), driving=driving
+        ),
+        describe=f"board on {config.serial.port}, camera {config.camera.source}, "
+        f"controls: {config.receiver.controls}",
     )
+
+
+def person_controls(
+    config: Any,
+    link: Any,
+    clock: Clock,
+    pad: Callable[[], Any],
+    *,
+    driving: bool,
+    radio: Any = None,
+) -> Any:
+    """What the person holds, by `receiver.controls`: the pad, the RC receiver (read back from
+    the board; `radio` is the simulator's transmitter), or both. `driving`: a policy may drive
+    (letting the transmitter's sticks go gives the wheels back to it)."""
+    from carrt.receiver import PadAndReceiver, ReceiverControls
+
+    if config.receiver.controls == "pad":
+        return pad()
+    receiver = ReceiverControls(link, config.receiver, clock.now, radio=radio, allow_auto=driving)
+    if config.receiver.controls == "receiver" or radio is not None:
+        return receiver
+    return PadAndReceiver(pad(), receiver)
 
 
 def _wait_first_frame(camera: Any, source: str) -> None:

@@ -17,6 +17,7 @@ from firmware_bridge import messages as m
 from firmware_bridge.drivetrain import Plant
 from firmware_bridge.link import SEND_PERIOD_S, BoardLink, HandshakeTimeout
 from firmware_bridge.native import FirmwareCore
+from firmware_bridge.receiver_pins import ReceiverPins
 
 
 class _CoreWire:
@@ -46,6 +47,7 @@ class DirectBoardLink(BoardLink):
         super().__init__("direct://firmware-core", clock=clock.now)
         self.plant = plant
         self.core = FirmwareCore()
+        self.receiver_pins = ReceiverPins(self.core)  # silent until a transmitter is set
         self._next_send = 0.0
         self._tick_offset = 0
         clock.add_listener(self._step)
@@ -80,12 +82,17 @@ class DirectBoardLink(BoardLink):
             self._next_send += SEND_PERIOD_S
             if self._next_send <= now:
                 self._next_send = now + SEND_PERIOD_S
+        self.receiver_pins.advance(int(now * 1e6))
         ticks = self.plant.step(dt, self.core.steer_us, self.core.throttle_us)
         self.core.set_encoder(ticks - self._tick_offset)
         self.core.tick(self.now_ms())
         out = self.core.take_output()
         if out:
             self.receive(out)
+
+    def set_receiver(self, steer_us: int, throttle_us: int, switch_us: int) -> None:
+        """The RC receiver's three pulse widths from its next frame on (the simulator's radio)."""
+        self.receiver_pins.set(steer_us, throttle_us, switch_us)
 
     @property
     def state(self) -> m.State:

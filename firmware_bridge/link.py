@@ -16,17 +16,16 @@ from __future__ import annotations
 
 import contextlib
 import itertools
-import os
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
 
 import serial
 
 from firmware_bridge import messages as m
 from firmware_bridge.codec import encode_frame
 from firmware_bridge.link_receive import Receiver
+from firmware_bridge.link_requests import Requests
 from firmware_bridge.link_types import (
     DEFAULT_BAUD,
     ArmRefused,
@@ -44,7 +43,7 @@ from firmware_bridge.link_types import (
 from firmware_bridge.timing import SEND_PERIOD_S
 
 
-class BoardLink:
+class BoardLink(Requests):
     """A live, self-healing connection to a carrt board (real or virtual)."""
 
     def __init__(
@@ -366,36 +365,6 @@ class BoardLink:
         if len(times) < 2 or times[-1] == times[0]:
             return 0.0
         return (len(times) - 1) / (times[-1] - times[0])
-
-    # ------------------------------------------------------------------ request/response
-    def ping(self, timeout_s: float = 0.5) -> float:
-        """Round-trip time to the board in seconds (host → board → host)."""
-        nonce = int.from_bytes(os.urandom(4), "little")
-        start = self.clock()
-        self._request(m.Ping(nonce=nonce), (m.Pong.TYPE, nonce), timeout_s)
-        return self.clock() - start
-
-    def read_config(self, timeout_s: float = 0.5) -> m.Config:
-        return self._request(m.ConfigRequest(), (m.Config.TYPE, 0), timeout_s)
-
-    def send_config(self, config: m.Config, timeout_s: float = 0.5) -> m.ConfigAck:
-        return self._request(config, (m.ConfigAck.TYPE, None), timeout_s)
-
-    def _request(self, message: Any, key: tuple[int, int | None], timeout_s: float) -> Any:
-        seq = self._next_seq()
-        if key[1] is None:  # answered by sequence number (CONFIG_ACK)
-            key = (key[0], seq)
-        event, box = self.receiver.expect(key)
-        try:
-            self._write(encode_frame(message, seq))
-            if not event.wait(timeout_s):
-                raise LinkError(
-                    f"board on {self.port} did not answer {type(message).__name__} "
-                    f"within {timeout_s * 1000:.0f} ms"
-                )
-            return box[0]
-        finally:
-            self.receiver.forget(key)
 
     # ------------------------------------------------------------------ internals
     def _next_seq(self) -> int:

@@ -30,6 +30,7 @@ from firmware_bridge.drivetrain import Plant, WheelPlant
 from firmware_bridge.messages import Reason, State
 from firmware_bridge.native import FirmwareBuildError, FirmwareCore
 from firmware_bridge.port_lock import PortLock
+from firmware_bridge.receiver_pins import ReceiverPins
 
 TICK_S = 0.001  # the core is ticked at about 1 kHz, like an Arduino loop()
 
@@ -58,6 +59,7 @@ class VirtualBoard:
         self._core = FirmwareCore(sanitize=sanitize)
         if self.storage_path and self.storage_path.exists():
             self._core.storage = self.storage_path.read_bytes()
+        self._receiver = ReceiverPins(self._core)  # silent until a transmitter is set
         self._tick_offset = 0
         self._last_step_s: float | None = None
         self._master: int | None = None
@@ -129,6 +131,7 @@ class VirtualBoard:
             now_s = self._clock()
             now_ms = int((now_s - self._t0) * 1000.0)
             self._service_host_side(now_ms)
+            self._receiver.advance(int((now_s - self._t0) * 1e6))
             dt = 0.0 if self._last_step_s is None else now_s - self._last_step_s
             self._last_step_s = now_s
             ticks = self.plant.step(dt, self._core.steer_us, self._core.throttle_us)
@@ -136,6 +139,11 @@ class VirtualBoard:
             self._core.tick(now_ms)
             self._flush_output()
             self._report_state_change(now_s)
+
+    def set_receiver(self, steer_us: int, throttle_us: int, switch_us: int) -> None:
+        """The RC receiver's three pulse widths from its next frame on (the simulator's radio)."""
+        with self._lock:
+            self._receiver.set(steer_us, throttle_us, switch_us)
 
     def _service_host_side(self, now_ms: int) -> None:
         if self._master is None:

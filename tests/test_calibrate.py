@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import io
 
-from carrt import calibrate
+from carrt import calibrate, calibration_io
 from carrt import config as car_config
 from firmware_bridge import messages as m
 from firmware_bridge.link import BoardLink
@@ -63,7 +63,7 @@ def test_a_value_the_board_refuses_cannot_be_accepted(tmp_path):
 
 def test_update_toml_section_adds_missing_keys():
     text = "[serial]\nport = 'x'\n\n[pwm]\nsteer_left_us = 1000  # measured\n"
-    updated = calibrate.update_toml_section(
+    updated = calibration_io.update_toml_section(
         text, "pwm", {"steer_left_us": 990, "steer_right_us": 2010}
     )
     assert "steer_left_us = 990  # measured" in updated

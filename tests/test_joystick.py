@@ -346,3 +346,37 @@ def test_opened_pad_without_the_mapped_axis_reports_a_problem(make, monkeypatch)
     assert "axis 4 does not exist" in js.problem
     time.sleep(0.02)
     assert not js.poll().neutral_since_connect  # it can never arm
+
+
+# ----------------------------------------------------------------------------- with a receiver
+def test_pad_and_receiver_together(make):
+    """`receiver.controls = "both"`: the pad's buttons, the transmitter's sticks once moved, and
+    connected only while both are (the receiver is read back from a real C core's TELEMETRY)."""
+    from carrt.clock import SimClock
+    from carrt.config import ReceiverConfig
+    from carrt.receiver import PadAndReceiver, ReceiverControls
+    from firmware_bridge import messages as m
+    from firmware_bridge.direct import DirectBoardLink
+    from firmware_bridge.drivetrain import WheelPlant
+
+    clock = SimClock(step_s=0.002)
+    link = DirectBoardLink(WheelPlant(), clock).open()
+    link.send_config(m.Config(controls=int(m.Controls.BOTH)))
+    pad = make()
+    both = PadAndReceiver(pad, ReceiverControls(link, ReceiverConfig(controls="both"), clock.now))
+    neutral_connect(pad)
+    clock.advance(0.2)
+    assert not both.poll().connected, "no receiver signal yet"
+    link.set_receiver(1500, 1500, 1000)
+    clock.advance(0.2)
+    state = both.poll()
+    assert state.connected and state.neutral_since_connect
+    post(pad, axis(pad.layout.steering_axis, 0.5))
+    assert both.poll().steering == pytest.approx(pad.poll().steering), "the pad's sticks"
+    link.set_receiver(1280, 1500, 1000)  # the transmitter's stick moves: it wins
+    clock.advance(0.1)
+    assert both.poll().steering == pytest.approx(-(220 - 60) / 440)
+    post(pad, button(pad.layout.arm))
+    assert both.poll().events.arm, "the pad's buttons"
+    post(pad, removed())
+    assert not both.poll().connected, "the pad gone: disconnected, as for the pad alone"

@@ -22,7 +22,7 @@ from typing import Any
 
 from carrt.clock import SimClock, WallClock
 from carrt.interfaces import Mode
-from carrt.rig import Rig, RigKind, load
+from carrt.rig import Rig, RigKind, load, person_controls
 from carrt.sim.camera import SimCamera
 from carrt.sim.metrics import TrajectoryRecorder
 from carrt.sim.pilot import SimPilot
@@ -129,7 +129,7 @@ def open_sim_rig(
         from firmware_bridge.direct import DirectBoardLink
 
         clock = SimClock(step_s=0.002)
-        link = DirectBoardLink(plant, clock).open()
+        link = board = DirectBoardLink(plant, clock).open()
         where = "on the simulated clock"
     stack.callback(link.close)
     # The camera's phase against the loop's ticks is arbitrary on a real car: draw it per run.
@@ -173,6 +173,17 @@ def open_sim_rig(
             renderer_map=lambda p: top_down(world.track, poses=[p.pose()]),
             max_throttle=config.joystick.max_throttle,
         )
+    device = joystick
+    if config.receiver.controls != "pad":
+        # the device in the person's hand stands in for the transmitter: its sticks and buttons
+        # become pulses on the board's receiver pins, read back like a real receiver's
+        from carrt.receiver import RadioStandIn
+
+        radio = RadioStandIn(device, board, config.receiver, clock.now)
+        joystick = person_controls(
+            config, link, clock, lambda: device, driving=driving, radio=radio
+        )
+        where += ", the person's controls through the board's RC receiver"
     tracker = Tracker(plant)
     return Rig(
         clock=clock,
@@ -182,7 +193,7 @@ def open_sim_rig(
         describe=f"simulator, layout {sim.layout} seed {sim.track_seed}, {where}",
         collisions=tracker.tick,
         follows_mode=[x for x in (pilot, tracker) if x is not None],
-        watches_loop=[joystick] if hasattr(joystick, "status_source") else [],
+        watches_loop=[device] if hasattr(device, "status_source") else [],
         finish=lambda summary: _finish(sim, world, tracker, summary),
         simulated_time=not realtime,
     )
