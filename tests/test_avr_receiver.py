@@ -14,8 +14,10 @@ from __future__ import annotations
 import random
 import time
 
+import numpy as np
 import pytest
 from avr_rig import RawHost, start_emulator
+from e2e_rig import CliRun
 
 from bench.bench_avr_receiver import (
     RUN_WIDTHS,
@@ -25,6 +27,8 @@ from bench.bench_avr_receiver import (
     switch_estop,
     take_over,
 )
+from carrt.episodes.reader import list_episodes, read_episode
+from carrt.interfaces import Mode
 from firmware_bridge import messages as m
 from firmware_bridge.timing import RC_LOSS_MS
 
@@ -129,12 +133,6 @@ def test_the_simulator_drives_through_the_emulated_receivers_pins(tmp_path):
     """`--board avr` with the transmitter as the controls: the scripted expert's sticks become
     pulse trains on the emulated D4-D6, the binary passes them to the servo and ESC, and the
     host records them read back from TELEMETRY (real time)."""
-    import numpy as np
-    from e2e_rig import CliRun
-
-    from carrt.episodes.reader import list_episodes, read_episode
-    from carrt.interfaces import Mode
-
     out = tmp_path / "out"
     code = CliRun(
         ["teleop", "--sim", "--board", "avr", "--expert", "auto", "--record", "--duration", "12",
