@@ -96,3 +96,50 @@ def test_keyboard_session_drive_crash_clear_rearm_drive_on(tmp_path, x_display):
     image = pygame.surfarray.array3d(pygame.image.load(str(png)))
     assert image.shape[:2] == (96 * 4 + 380, 96 * 4 + 190)
     assert np.std(image) > 20, "the window shows something"
+
+
+def test_the_keyboard_as_the_transmitter_drive_crash_clear_rearm(tmp_path, x_display):
+    """`receiver.controls = "receiver"`: the keys are the transmitter's sticks and switch, put on
+    the virtual board's receiver pins; Enter makes the arm gesture, c flips the switch."""
+    env, out = x_display, tmp_path / "radio"
+    carrt = subprocess.Popen(
+        [sys.executable, "-m", "carrt", "teleop", "--sim", "--layout", "easy", "--record",
+         "--out", str(out), "--duration", "40", "--set", "receiver.controls=receiver"],
+        env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+
+    def xdo(*args: str) -> str:
+        done = subprocess.run(["xdotool", *args], env=env, capture_output=True, text=True)
+        return done.stdout.strip()
+
+    deadline = time.monotonic() + 20
+    while not (window := xdo("search", "--pid", str(carrt.pid))):
+        assert carrt.poll() is None and time.monotonic() < deadline, carrt.stdout.read()
+        time.sleep(0.2)
+    xdo("windowfocus", "--sync", window.split()[0])
+    time.sleep(1.0)
+
+    def hold(key: str, seconds: float) -> None:
+        xdo("keydown", key)
+        time.sleep(seconds)
+        xdo("keyup", key)
+
+    xdo("key", "Return")  # the arm gesture: steering full right for a second, let go
+    time.sleep(2.5)
+    hold("Up", 6.0)  # into the fence at the first bend
+    time.sleep(1.0)
+    xdo("key", "c")  # the switch to e-stop and back: clears the collision's latch
+    time.sleep(1.5)
+    xdo("key", "Return")
+    time.sleep(2.5)
+    hold("Up", 1.5)
+    xdo("key", "Escape")
+    text, _ = carrt.communicate(timeout=30)
+    assert carrt.returncode == 0, text
+    assert "RC receiver" in text
+    episodes = [read_episode(p) for p in list_episodes(out)]
+    assert len(episodes) >= 2, text
+    assert episodes[0].end_reason == "collision", text
+    after = episodes[-1].steps
+    assert after["speed_mps"].max() > 0.5, "the car drove on after clear and re-arm"
+    assert after["human_action"][:, 1].max() > 0.5, "the throttle, read back from the board"
