@@ -93,7 +93,9 @@ def _random_config(rng: random.Random, m) -> object:
         if rng.random() < 0.5:
             us[0], us[2] = us[2], us[0]
     limits = [rng.randint(0, 10001), rng.randint(0, 10001), rng.randint(0, 1000001)]
-    return m.Config(*us, *limits, rng.randint(0, 1))
+    receiver = [rng.randint(0, 3), *(rng.randint(700, 2300) for _ in range(2))]
+    receiver += [rng.randint(0, 600), rng.randint(700, 2300)]  # deadzone, e-stop threshold
+    return m.Config(*us, *limits, rng.randint(0, 1), *receiver)
 
 
 def _corrupt(rng: random.Random, wire: bytes) -> bytes:
@@ -139,8 +141,19 @@ def drive(seed: int = 1, rounds: int = 2000) -> None:
             decision = rng.getrandbits(32)
             arm_at = rng.randint(90, 130)
             period = rng.choice([1, 5, 20, 50])
+            receiver = rng.random() < 0.6  # a receiver on the pins: its pulses, and noise
             for step in range(rng.randint(50, 700)):
                 now += 1
+                if receiver and step % 20 == 0:  # a frame: three pulses, mostly plausible
+                    for ch in range(3):
+                        rise = now * 1000 + 1000 + 2500 * ch
+                        width = (
+                            rng.randint(900, 2100) if rng.random() < 0.9 else rng.randint(1, 5000)
+                        )
+                        core.rc_edge(ch, 1, rise * 2, rise // 1000)
+                        core.rc_edge(ch, 0, (rise + width) * 2, (rise + width) // 1000)
+                if receiver and rng.random() < 0.05:
+                    core.rc_edge(rng.randrange(4), rng.randint(0, 1), rng.getrandbits(32), now)
                 if step > arm_at and rng.random() < 0.3:
                     encoder += rng.randint(-3, 5)
                     core.set_encoder(encoder)
@@ -169,6 +182,7 @@ def drive(seed: int = 1, rounds: int = 2000) -> None:
         if rng.random() < 0.3:
             core.take_output()
         _ = (core.state, core.reason, core.arm_refusal, core.counters, core.steer_us)
+        _ = (core.rc_drives, [core.rc_width_us(ch) for ch in range(4)])
     print("DRIVER OK", core.counters, sorted(seen), flush=True)
 
 
