@@ -11,7 +11,8 @@ that obeys it (the moment it reaches the servo or the ESC):
 - loss: the transmitter goes silent → FAILSAFE (the ARMED LED goes dark), measured from the end
   of the last pulse; the rule says after RC_LOSS_MS.
 
-The host is bench/avr_rc_host.py in its own process. tests/test_avr_receiver.py runs the same
+The host is this module run with ``--host PORT`` (`host()` below), in its own process so that
+the trials can freeze it. tests/test_avr_receiver.py runs the same
 trials and asserts the bounds; `make bench` records the distributions.
 """
 
@@ -22,11 +23,14 @@ import random
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from firmware_bridge import messages as m
 from firmware_bridge.avr_emulator import F_CPU, AvrEmulator
+from firmware_bridge.link import BoardLink, LinkError
 
 REPO = Path(__file__).resolve().parents[1]
 STEERING, THROTTLE, SWITCH = 0, 1, 2
@@ -53,7 +57,7 @@ class Rig:
             emu.rc_train(ch, width, FRAME_US, 1000 + 2500 * ch)  # channels one after another
         time.sleep(0.2)  # five good frames: the receiver counts
         self.host = subprocess.Popen(
-            [sys.executable, "-m", "bench.avr_rc_host", emu.port],
+            [sys.executable, "-m", "bench.bench_avr_receiver", "--host", emu.port],
             cwd=REPO,
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
@@ -203,3 +207,64 @@ def run() -> dict:
             f"{s['latency_ms_median']:.2f} / {s['latency_ms_max']:.2f} ms (min / median / max)"
         )
     return result
+
+
+POLICY = (0.2, 0.1)
+
+
+def host(port: str) -> int:
+    """The trials' host: opens the link, names the receiver as the person's controls, arms, lets
+    the "policy" drive (AUTO flag, a new decision every 100 ms, steering +0.2 and throttle +0.1,
+    so a neutral output is a visible change) and obeys one command per line on stdin: ``auto 0``
+    / ``auto 1``, ``rearm`` (clear, then arm), ``quit``; each answered ``ok`` or ``error ...``;
+    ``armed`` once it drives. The trials stop it with SIGSTOP to play a frozen host."""
+    link = BoardLink(port).open()
+    stop = threading.Event()
+
+    def decide() -> None:
+        while not stop.wait(0.1):
+            link.set_command(*POLICY)
+
+    try:
+        ack = link.send_config(m.Config(controls=int(m.Controls.RECEIVER)))
+        if ack.result != m.ConfigResult.ACCEPTED:
+            print(f"error config refused ({ack.result})", flush=True)
+            return 1
+        link.set_command(0.0, 0.0)
+        link.wait_until_still()
+        link.arm()
+        link.set_auto(True)
+        link.set_command(*POLICY)
+        threading.Thread(target=decide, daemon=True).start()
+        print("armed", flush=True)
+        for line in sys.stdin:
+            word = line.split()
+            try:
+                if word == ["auto", "0"] or word == ["auto", "1"]:
+                    link.set_auto(word[1] == "1")
+                    link.set_command(*POLICY, send_now=True)
+                elif word == ["rearm"]:
+                    link.clear()
+                    link.set_command(0.0, 0.0)
+                    link.arm()
+                    link.set_command(*POLICY)
+                elif word == ["quit"]:
+                    print("ok", flush=True)
+                    break
+                else:
+                    print(f"error unknown: {line.strip()}", flush=True)
+                    continue
+            except LinkError as exc:
+                print(f"error {exc}", flush=True)
+                continue
+            print("ok", flush=True)
+    finally:
+        stop.set()
+        link.close()
+    return 0
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 3 or sys.argv[1] != "--host":
+        sys.exit("usage: python -m bench.bench_avr_receiver --host PORT (the trials run it)")
+    sys.exit(host(sys.argv[2]))

@@ -38,46 +38,58 @@ def x_display(tmp_path):
     server.wait(timeout=10)
 
 
-def test_keyboard_session_drive_crash_clear_rearm_drive_on(tmp_path, x_display):
-    env, out = x_display, tmp_path / "keys"
-    shot = tmp_path / "window.png"
-    carrt = subprocess.Popen(
-        [sys.executable, "-m", "carrt", "teleop", "--sim", "--layout", "easy", "--record",
-         "--out", str(out), "--duration", "40", "--set", "noise.fraction=0.0"],
-        env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
+class Keys:
+    """`carrt teleop --sim` with its keyboard window on the X server, and real key events."""
 
-    def xdo(*args: str) -> str:
-        done = subprocess.run(["xdotool", *args], env=env, capture_output=True, text=True)
+    def __init__(self, env: dict, cwd, *args: str) -> None:
+        self.env = env
+        self.carrt = subprocess.Popen(
+            [sys.executable, "-m", "carrt", "teleop", "--sim", "--layout", "easy", *args],
+            env=env, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )  # fmt: skip
+        deadline = time.monotonic() + 20
+        while not (window := self.xdo("search", "--pid", str(self.carrt.pid))):
+            assert self.carrt.poll() is None and time.monotonic() < deadline, (
+                self.carrt.stdout.read()
+            )
+            time.sleep(0.2)
+        self.xdo("windowfocus", "--sync", window.split()[0])
+        time.sleep(1.0)
+
+    def xdo(self, *args: str) -> str:
+        done = subprocess.run(["xdotool", *args], env=self.env, capture_output=True, text=True)
         return done.stdout.strip()
 
-    deadline = time.monotonic() + 20
-    while not (window := xdo("search", "--pid", str(carrt.pid))):
-        assert carrt.poll() is None and time.monotonic() < deadline, carrt.stdout.read()
-        time.sleep(0.2)
-    window = window.split()[0]
-    xdo("windowfocus", "--sync", window)
-    time.sleep(1.0)
-
-    def press(key: str, settle: float = 0.6) -> None:
-        xdo("key", key)
+    def press(self, key: str, settle: float = 0.6) -> None:
+        self.xdo("key", key)
         time.sleep(settle)
 
-    def hold(key: str, seconds: float) -> None:
-        xdo("keydown", key)
+    def hold(self, key: str, seconds: float) -> None:
+        self.xdo("keydown", key)
         time.sleep(seconds)
-        xdo("keyup", key)
+        self.xdo("keyup", key)
 
-    press("Return")  # arm
-    hold("Up", 6.0)  # straight on at full throttle: into the fence at the first bend
+    def finish(self) -> str:
+        """Escape, and the run's output once it has ended (exit code checked)."""
+        self.xdo("key", "Escape")
+        text, _ = self.carrt.communicate(timeout=30)
+        assert self.carrt.returncode == 0, text
+        return text
+
+
+def test_keyboard_session_drive_crash_clear_rearm_drive_on(tmp_path, x_display):
+    out = tmp_path / "keys"
+    shot = tmp_path / "window.png"
+    keys = Keys(x_display, tmp_path, "--record", "--out", str(out), "--duration", "40",
+                "--set", "noise.fraction=0.0")  # fmt: skip
+    keys.press("Return")  # arm
+    keys.hold("Up", 6.0)  # straight on at full throttle: into the fence at the first bend
     time.sleep(1.0)
-    press("c")  # clear the collision's e-stop (the car was lifted back onto the track)
-    press("Return")  # arm again
-    hold("Up", 1.5)  # and drive on
-    press("F12")  # screenshot of the window
-    press("Escape")
-    text, _ = carrt.communicate(timeout=30)
-    assert carrt.returncode == 0, text
+    keys.press("c")  # clear the collision's e-stop (the car was lifted back onto the track)
+    keys.press("Return")  # arm again
+    keys.hold("Up", 1.5)  # and drive on
+    keys.press("F12")  # screenshot of the window
+    text = keys.finish()
 
     episodes = [read_episode(p) for p in list_episodes(out)]
     assert len(episodes) >= 2, text
@@ -101,41 +113,16 @@ def test_keyboard_session_drive_crash_clear_rearm_drive_on(tmp_path, x_display):
 def test_the_keyboard_as_the_transmitter_drive_crash_clear_rearm(tmp_path, x_display):
     """`receiver.controls = "receiver"`: the keys are the transmitter's sticks and switch, put on
     the virtual board's receiver pins; Enter makes the arm gesture, c flips the switch."""
-    env, out = x_display, tmp_path / "radio"
-    carrt = subprocess.Popen(
-        [sys.executable, "-m", "carrt", "teleop", "--sim", "--layout", "easy", "--record",
-         "--out", str(out), "--duration", "40", "--set", "receiver.controls=receiver"],
-        env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
-
-    def xdo(*args: str) -> str:
-        done = subprocess.run(["xdotool", *args], env=env, capture_output=True, text=True)
-        return done.stdout.strip()
-
-    deadline = time.monotonic() + 20
-    while not (window := xdo("search", "--pid", str(carrt.pid))):
-        assert carrt.poll() is None and time.monotonic() < deadline, carrt.stdout.read()
-        time.sleep(0.2)
-    xdo("windowfocus", "--sync", window.split()[0])
+    out = tmp_path / "radio"
+    keys = Keys(x_display, tmp_path, "--record", "--out", str(out), "--duration", "40",
+                "--set", "receiver.controls=receiver")  # fmt: skip
+    keys.press("Return", settle=2.5)  # the arm gesture: steering full right for a second, let go
+    keys.hold("Up", 6.0)  # into the fence at the first bend
     time.sleep(1.0)
-
-    def hold(key: str, seconds: float) -> None:
-        xdo("keydown", key)
-        time.sleep(seconds)
-        xdo("keyup", key)
-
-    xdo("key", "Return")  # the arm gesture: steering full right for a second, let go
-    time.sleep(2.5)
-    hold("Up", 6.0)  # into the fence at the first bend
-    time.sleep(1.0)
-    xdo("key", "c")  # the switch to e-stop and back: clears the collision's latch
-    time.sleep(1.5)
-    xdo("key", "Return")
-    time.sleep(2.5)
-    hold("Up", 1.5)
-    xdo("key", "Escape")
-    text, _ = carrt.communicate(timeout=30)
-    assert carrt.returncode == 0, text
+    keys.press("c", settle=1.5)  # the switch to e-stop and back: clears the collision's latch
+    keys.press("Return", settle=2.5)
+    keys.hold("Up", 1.5)
+    text = keys.finish()
     assert "RC receiver" in text
     episodes = [read_episode(p) for p in list_episodes(out)]
     assert len(episodes) >= 2, text
