@@ -95,8 +95,7 @@ def command_frame_cost(emu: AvrEmulator, n_frames: int = 400) -> dict:
 
 def receiver_edge_cost(emu: AvrEmulator, seconds: float = 2.0) -> dict:
     """Cycles spent handing receiver edges to the core (D8), three channels at 50 Hz."""
-    for ch, width in enumerate((1500, 1500, 1000)):
-        emu.rc_train(ch, width, 20_000, 1000 + 2500 * ch)
+    emu.rc_receiver((1500, 1500, 1000))
     time.sleep(0.3)
     emu.busy()
     time.sleep(seconds)

@@ -34,7 +34,6 @@ from firmware_bridge.link import BoardLink, LinkError
 
 REPO = Path(__file__).resolve().parents[1]
 STEERING, THROTTLE, SWITCH = 0, 1, 2
-FRAME_US = 20_000.0
 RUN_WIDTHS = {STEERING: 1500, THROTTLE: 1500, SWITCH: 1000}  # sticks centred, switch at run
 CYCLES_PER_MS = F_CPU / 1000
 JITTER_US = 12.0  # fw_rc.h FW_RC_JITTER_US: how late an interrupt may stamp a receiver edge
@@ -53,8 +52,7 @@ class Rig:
 
     def __init__(self, emu: AvrEmulator) -> None:
         self.emu = emu
-        for ch, width in RUN_WIDTHS.items():
-            emu.rc_train(ch, width, FRAME_US, 1000 + 2500 * ch)  # channels one after another
+        emu.rc_receiver(RUN_WIDTHS.values())
         time.sleep(0.2)  # five good frames: the receiver counts
         self.host = subprocess.Popen(
             [sys.executable, "-m", "bench.bench_avr_receiver", "--host", emu.port],
@@ -160,8 +158,7 @@ def signal_loss(rig: Rig, rng: random.Random) -> Trial:
     first_lost = min((e for e in events if e.kind == "O"), key=lambda e: e.cycle)
     led = _after(events, first_lost.cycle, "L", lambda e: e.value == 0)
     latency = (led.cycle - first_lost.cycle) / CYCLES_PER_MS
-    for ch, width in RUN_WIDTHS.items():
-        emu.rc_train(ch, width, FRAME_US, 1000 + 2500 * ch)
+    emu.rc_receiver(RUN_WIDTHS.values())
     time.sleep(0.15)  # five frames to count again
     rig.tell("rearm")
     return Trial(latency)

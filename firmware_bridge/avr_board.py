@@ -48,11 +48,12 @@ class AvrBoard:
     def set_receiver(self, steer_us: int, throttle_us: int, switch_us: int) -> None:
         """Pulse trains on the emulated receiver pins (D4-D6), each change from its next pulse."""
         widths = [int(steer_us), int(throttle_us), int(switch_us)]
-        for ch, width in enumerate(widths):
-            if self._receiver is None:
-                self.emulator.rc_train(ch, width, 20_000, 1_000 + 2_500 * ch)
-            elif self._receiver[ch] != width:
-                self.emulator.rc_train(ch, width)
+        if self._receiver is None:
+            self.emulator.rc_receiver(widths)
+        else:
+            for ch, width in enumerate(widths):
+                if self._receiver[ch] != width:
+                    self.emulator.rc_train(ch, width)
         self._receiver = widths
 
     def step(self, dt_s: float, ticks_before: int) -> int:

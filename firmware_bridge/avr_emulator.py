@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from firmware_bridge.port_lock import PortLock
+from firmware_bridge.receiver_pins import FRAME_US, SLOT_US
 
 F_CPU = 16_000_000
 CYCLES_PER_US = F_CPU // 1_000_000
@@ -233,6 +234,12 @@ class AvrEmulator:
         width_us every period_us, the first after phase_us. A running train takes a new width
         at its next pulse and logs a W event (value: channel) at that pulse's falling edge."""
         self.ask(f"rc {int(channel)} {width_us:.3f} {period_us:.3f} {phase_us:.3f}")
+
+    def rc_receiver(self, widths) -> None:
+        """A receiver on D4-D6: the three channels' trains at these widths, one after another in
+        every 20 ms frame (the layout receiver_pins.py plays into the virtual boards)."""
+        for ch, width in enumerate(widths):
+            self.rc_train(ch, width, FRAME_US, SLOT_US[ch])
 
     def rc_off(self, channel: int) -> None:
         """Stop a receiver train after the pulse in flight (an O event at its falling edge)."""

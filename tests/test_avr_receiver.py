@@ -96,13 +96,13 @@ def _arm_attempt(emu, host) -> m.Telemetry:
 )
 def test_nothing_arms_from_a_receiver_without_a_valid_signal(raw, signal):
     emu, host = raw
+    if signal == "too wide":
+        emu.rc_receiver([2400] * 3)
+    elif signal == "too short":
+        emu.rc_receiver([500] * 3)
     for ch in RUN_WIDTHS:
         if signal == "noise":
             emu.rc_noise(ch, 700.0, seed=ch + 1)
-        elif signal == "too wide":
-            emu.rc_train(ch, 2400, 20_000, 1000 + 2500 * ch)
-        elif signal == "too short":
-            emu.rc_train(ch, 500, 20_000, 1000 + 2500 * ch)
         elif signal == "too fast":
             emu.rc_train(ch, 1500, 5_000, 300 * ch)
     time.sleep(0.3)
@@ -115,8 +115,7 @@ def test_nothing_arms_from_a_receiver_without_a_valid_signal(raw, signal):
 
 def test_a_valid_receiver_is_reported_and_then_arming_works(raw):
     emu, host = raw
-    for ch, width in RUN_WIDTHS.items():
-        emu.rc_train(ch, width + (37 if ch == 0 else 0), 20_000, 1000 + 2500 * ch)
+    emu.rc_receiver([RUN_WIDTHS[0] + 37, RUN_WIDTHS[1], RUN_WIDTHS[2]])
     time.sleep(0.3)
     host.drive(0.15, flags=0)
     tel = [x for x in host.received if isinstance(x, m.Telemetry)][-1]

@@ -24,11 +24,12 @@ static void lose(fw_rc_channel_t *ch) {
  * the last real move); with an even count, the lower middle one. */
 static uint16_t recent_median(const fw_rc_channel_t *ch) {
   uint16_t sorted[FW_RC_MEDIAN];
+  uint16_t newest = ch->recent_us[0];
   uint8_t n = 0u;
   uint8_t i;
   for (i = 0u; i < FW_RC_MEDIAN; i++) {
     uint16_t v = ch->recent_us[i];
-    uint16_t d = (uint16_t)(v > ch->width_us ? v - ch->width_us : ch->width_us - v);
+    uint16_t d = (uint16_t)(v > newest ? v - newest : newest - v);
     if (v != 0u && d <= FW_RC_JITTER_US) {
       uint8_t j = n++;
       while (j > 0u && sorted[j - 1u] > v) { /* insertion sort of at most five */
@@ -42,7 +43,7 @@ static uint16_t recent_median(const fw_rc_channel_t *ch) {
 }
 
 static void steady(fw_rc_channel_t *ch) {
-  uint16_t w = ch->width_us;
+  uint16_t w = ch->recent_us[0];
   uint16_t step = (uint16_t)(w > ch->steady_us ? w - ch->steady_us : ch->steady_us - w);
   if (ch->steady_us == 0u || step > FW_RC_JITTER_US) {
     ch->steady_us = w; /* a real move (or the first pulse): at once */
@@ -78,9 +79,8 @@ void fw_rc_edge(fw_rc_channel_t *ch, uint8_t level, uint32_t ticks, uint32_t now
   if (!ch->period_ok) {
     return; /* the first pulse after a gap: its width is fine, its period unknown */
   }
-  ch->width_us = (uint16_t)(width / FW_RC_TICKS_PER_US);
   memmove(&ch->recent_us[1], &ch->recent_us[0], sizeof(ch->recent_us) - sizeof(ch->recent_us[0]));
-  ch->recent_us[0] = ch->width_us;
+  ch->recent_us[0] = (uint16_t)(width / FW_RC_TICKS_PER_US);
   steady(ch);
   ch->last_good_ms = now_ms;
   if (ch->run < FW_RC_MIN_RUN) {
@@ -97,6 +97,6 @@ void fw_rc_poll(fw_rc_channel_t *ch, uint32_t now_ms) {
 
 uint8_t fw_rc_valid(const fw_rc_channel_t *ch) { return ch->valid; }
 
-uint16_t fw_rc_width_us(const fw_rc_channel_t *ch) { return ch->valid ? ch->width_us : 0u; }
+uint16_t fw_rc_width_us(const fw_rc_channel_t *ch) { return ch->valid ? ch->recent_us[0] : 0u; }
 
 uint16_t fw_rc_steady_us(const fw_rc_channel_t *ch) { return ch->valid ? ch->steady_us : 0u; }

@@ -42,7 +42,6 @@ extern "C" {
 typedef struct fw_rc_channel {
   uint32_t rise_ticks;      /* the last rising edge */
   uint32_t last_good_ms;    /* when the last good pulse ended */
-  uint16_t width_us;        /* the last good pulse's width */
   uint16_t recent_us[FW_RC_MEDIAN]; /* the last good widths, newest first (0: none yet) */
   uint16_t steady_us;       /* the width for the outputs (see above) */
   uint8_t high;             /* a rising edge came and its falling edge has not */
