@@ -37,6 +37,8 @@ PERIOD_MS = 20.0
 # The loss rule polls each loop() pass at the board's 1 ms clock and the LED follows in the same
 # pass: the failsafe lands in (RC_LOSS_MS, RC_LOSS_MS + 2 ms].
 LOSS_LATE_MS = 2.0
+# the steadied width is the median of the last five receiver pulses: one more to be sure
+SETTLE_FRAMES = 6
 
 
 @pytest.fixture
@@ -128,6 +130,14 @@ def test_a_valid_receiver_is_reported_and_then_arming_works(raw):
     tel = [x for x in host.received if isinstance(x, m.Telemetry)][-1]
     assert tel.state == m.State.ARMED  # MANUAL from the receiver: its steering on the pin
     assert tel.flags & m.TelemetryFlags.RC_DRIVES
+    # the passthrough spec is for the steadied width: wait for SETTLE_FRAMES output frames in
+    # emulated time (a loaded machine runs the emulator slower than the wall clock, and the
+    # first pulse after the take-over is the raw measured width)
+    first = emu.pulse_counts()[0]
+    deadline = time.monotonic() + 10.0
+    while emu.pulse_counts()[0] < first + SETTLE_FRAMES:
+        assert time.monotonic() < deadline, "the steering output stopped pulsing"
+        time.sleep(0.02)
     assert emu.pulses_us()[0] == pytest.approx(1537.0, abs=2.0)
 
 
