@@ -3,12 +3,14 @@ killed child process) can regenerate exactly what was written and compare it."""
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from carrt.episodes import EpisodeWriter, run_metadata
+from carrt.episodes import cli as episodes_cli
 from carrt.interfaces import HORIZON, IMAGE_SHAPE, Mode, Step
 
 
@@ -118,3 +120,13 @@ def assert_step_matches(record: np.void, frame: np.ndarray, step: Step) -> None:
             assert np.isnan(record[name]).all()
         else:
             np.testing.assert_array_equal(record[name], plan.astype(np.float32))
+
+
+def run_cli(argv: list[str]) -> int:
+    """`carrt episodes ...` in-process (argv starts with "episodes"), its errors raised rather
+    than turned into exit code 2: the one-line error handling is carrt.cli.main's, tested on its
+    own."""
+    parser = argparse.ArgumentParser(prog="carrt")
+    episodes_cli.add_parser(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return args.func(args)

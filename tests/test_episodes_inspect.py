@@ -7,15 +7,13 @@ and render. The episodes' format is in test_episodes.py.
 
 from __future__ import annotations
 
-import argparse
 import json
 
 import cv2
 import numpy as np
 import pytest
-from episode_factory import make_step, metadata, mixed_steps, write_episode
+from episode_factory import make_step, metadata, mixed_steps, run_cli, write_episode
 
-from carrt.episodes import cli as episodes_cli
 from carrt.episodes import read_episode, video
 from carrt.episodes.contact_sheet import render_contact_sheet
 from carrt.episodes.summary import summarize
@@ -112,29 +110,24 @@ def test_contact_sheet_decodes(tmp_path):
 
 
 # ----------------------------------------------------------------------------- CLI
-def _cli(argv):
-    parser = argparse.ArgumentParser(prog="carrt")
-    episodes_cli.add_parser(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    return args.func(args)
 
 
 def test_cli_ls_show_video(tmp_path, capsys):
     path = write_episode(tmp_path, mixed_steps(10))
-    assert _cli(["episodes", "ls", str(tmp_path)]) == 0
+    assert run_cli(["episodes", "ls", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert path.name in out and "stopped" in out and "1 episodes" in out
-    assert _cli(["episodes", "show", str(path)]) == 0
+    assert run_cli(["episodes", "show", str(path)]) == 0
     out = capsys.readouterr().out
     assert "interventions" in out and '"car_config"' not in out and len(out.splitlines()) < 30
-    assert _cli(["episodes", "show", str(path), "--meta"]) == 0
+    assert run_cli(["episodes", "show", str(path), "--meta"]) == 0
     assert '"car_config"' in capsys.readouterr().out
-    assert _cli(["episodes", "show", str(path), "--json", "--verify"]) == 0
+    assert run_cli(["episodes", "show", str(path), "--json", "--verify"]) == 0
     assert json.loads(capsys.readouterr().out)["frames"] == 10
-    assert _cli(["episodes", "video", str(path), "--sheet", str(tmp_path / "s.png")]) == 0
+    assert run_cli(["episodes", "video", str(path), "--sheet", str(tmp_path / "s.png")]) == 0
     assert (tmp_path / "s.png").is_file()
-    assert _cli(["episodes", "video", str(path), "-o", str(tmp_path / "v.avi")]) == 0
+    assert run_cli(["episodes", "video", str(path), "-o", str(tmp_path / "v.avi")]) == 0
     assert (tmp_path / "v.avi").stat().st_size > 0
     (tmp_path / "void").mkdir()
     with pytest.raises(UserError, match="no episodes in"):
-        _cli(["episodes", "ls", str(tmp_path / "void")])
+        run_cli(["episodes", "ls", str(tmp_path / "void")])

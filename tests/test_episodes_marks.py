@@ -4,26 +4,17 @@ command line; the recorded files' bytes never change; the marks are listed, clea
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 from pathlib import Path
 
 import pytest
-from episode_factory import make_step, write_episode
+from episode_factory import make_step, run_cli, write_episode
 
-from carrt.episodes import cli as episodes_cli
 from carrt.episodes import format as fmt
 from carrt.episodes.marks import MARKS
 
 STEPS = 50  # 0.1 s apart: step k at k/10 s
-
-
-def _cli(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="carrt")
-    episodes_cli.add_parser(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    return args.func(args)
 
 
 def _bytes(ep: Path) -> dict[str, str]:
@@ -38,31 +29,33 @@ def episode(tmp_path) -> Path:
 
 def test_marks_are_added_listed_undone_and_cleared_without_touching_the_recording(episode, capsys):
     before = _bytes(episode)
-    assert _cli(["episodes", "mark", str(episode), "--exclude", "1.0-1.5"]) == 0
+    assert run_cli(["episodes", "mark", str(episode), "--exclude", "1.0-1.5"]) == 0
     assert "excluded 1–1.5 s (5 of 50 steps excluded)" in capsys.readouterr().out
-    assert _cli(["episodes", "mark", str(episode), "--exclude-last", "1s", "--note", "fence"]) == 0
+    assert (
+        run_cli(["episodes", "mark", str(episode), "--exclude-last", "1s", "--note", "fence"]) == 0
+    )
     out = capsys.readouterr().out
     assert "excluded 1–1.5 s; excluded 3.901–5.9 s" in out and "note: fence" in out
     assert "(15 of 50 steps excluded)" in out  # 1.0–1.5 s and the last second: 4.0–4.9 s
     assert _bytes(episode) == before  # the recorded files never change
-    assert _cli(["episodes", "mark", str(episode), "--list"]) == 0
+    assert run_cli(["episodes", "mark", str(episode), "--list"]) == 0
     assert "(15 of 50 steps excluded)" in capsys.readouterr().out
-    assert _cli(["episodes", "mark", str(episode), "--undo"]) == 0
+    assert run_cli(["episodes", "mark", str(episode), "--undo"]) == 0
     assert "excluded 1–1.5 s (5 of 50 steps excluded)" in capsys.readouterr().out
-    assert _cli(["episodes", "mark", str(episode), "--clear"]) == 0
+    assert run_cli(["episodes", "mark", str(episode), "--clear"]) == 0
     assert ": none (0 of 50 steps excluded)" in capsys.readouterr().out
-    assert _cli(["episodes", "mark", str(episode), "--undo"]) == 0  # the clear, undone
+    assert run_cli(["episodes", "mark", str(episode), "--undo"]) == 0  # the clear, undone
     assert "(5 of 50 steps excluded)" in capsys.readouterr().out
     assert _bytes(episode) == before
     json.loads((episode / MARKS).read_text())  # whole JSON, written atomically
 
 
 def test_ls_and_show_report_the_marks(episode, capsys):
-    _cli(["episodes", "mark", str(episode), "--exclude", "0-1"])
+    run_cli(["episodes", "mark", str(episode), "--exclude", "0-1"])
     capsys.readouterr()
-    assert _cli(["episodes", "show", str(episode)]) == 0
+    assert run_cli(["episodes", "show", str(episode)]) == 0
     assert "marks          excluded 0–1 s (10 steps out of training)" in capsys.readouterr().out
-    assert _cli(["episodes", "ls", str(episode.parent)]) == 0
+    assert run_cli(["episodes", "ls", str(episode.parent)]) == 0
     assert "(10 excluded)" in capsys.readouterr().out
 
 

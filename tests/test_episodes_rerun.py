@@ -3,23 +3,13 @@ Rerun's own chunk reader: the entities, their row counts and values are the epis
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 import pyarrow as pa
 import rerun.chunk as rerun_chunk
-from episode_factory import mixed_steps, write_episode
+from episode_factory import mixed_steps, run_cli, write_episode
 
-from carrt.episodes import cli as episodes_cli
 from carrt.episodes import read_episode
 from carrt.interfaces import Mode
-
-
-def _cli(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="carrt")
-    episodes_cli.add_parser(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    return args.func(args)
 
 
 def _read(path) -> dict[str, list]:
@@ -42,9 +32,9 @@ def _column(batches: list, name: str, step_order: bool = True) -> list:
 def test_episodes_read_back_from_the_rrd_with_rerun(tmp_path, capsys):
     first = write_episode(tmp_path / "eps", mixed_steps(30, seed=1))
     second = write_episode(tmp_path / "eps", mixed_steps(12, seed=2))
-    _cli(["episodes", "mark", str(first), "--exclude", "1.0-1.5"])
+    run_cli(["episodes", "mark", str(first), "--exclude", "1.0-1.5"])
     out = tmp_path / "run.rrd"
-    assert _cli(["episodes", "rerun", str(tmp_path / "eps"), "-o", str(out)]) == 0
+    assert run_cli(["episodes", "rerun", str(tmp_path / "eps"), "-o", str(out)]) == 0
     assert f"wrote {out} (2 episode(s), 42 steps)" in capsys.readouterr().out
     entities = _read(out)
     for path in (first, second):

@@ -5,27 +5,18 @@ reported as one with exit 0, and an episode a crash left empty says so."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
-from episode_factory import make_step, write_episode
+from episode_factory import make_step, run_cli, write_episode
 
-from carrt.episodes import cli as episodes_cli
 from carrt.episodes import format as fmt
 from carrt.episodes import read_episode
 
 STEPS = 40
-
-
-def _cli(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="carrt")
-    episodes_cli.add_parser(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    return args.func(args)
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +51,7 @@ def test_a_flipped_byte_inside_the_durable_steps_is_reported_as_corruption(
     size = fmt.FRAME_BYTES if target == fmt.FRAMES else read_episode(recorded).steps.dtype.itemsize
     offset = {"head": 0, "mid": size // 2, "end": size - 1}[where]
     _flip(ep_dir / target, step * size + offset)
-    assert _cli(["episodes", "show", str(ep_dir), "--verify"]) == 2
+    assert run_cli(["episodes", "show", str(ep_dir), "--verify"]) == 2
     out, err = capsys.readouterr()
     lines = err.strip().splitlines()
     assert (
@@ -71,11 +62,11 @@ def test_a_flipped_byte_inside_the_durable_steps_is_reported_as_corruption(
         assert fmt.FRAMES in lines[0]
     assert "torn tail" not in out and f"CORRUPTED at step {step}" in out
     # --json says the same, and the exit is the same
-    assert _cli(["episodes", "show", str(ep_dir), "--verify", "--json"]) == 2
+    assert run_cli(["episodes", "show", str(ep_dir), "--verify", "--json"]) == 2
     damage = json.loads(capsys.readouterr().out)["damage"]
     assert damage["step"] == step and damage["intact_after"] == STEPS - step - 1
     # without --verify the durable steps are trusted (opening stays fast): nothing is claimed
-    assert _cli(["episodes", "show", str(ep_dir)]) == 0
+    assert run_cli(["episodes", "show", str(ep_dir)]) == 0
     capsys.readouterr()
 
 
@@ -91,7 +82,7 @@ def test_a_torn_tail_after_a_cut_is_still_a_torn_tail(recorded, tmp_path, capsys
     itemsize = read_episode(recorded).steps.dtype.itemsize
     with open(ep_dir / fmt.STEPS, "r+b") as f:
         f.truncate((STEPS - 1) * itemsize + itemsize // 2)
-    assert _cli(["episodes", "show", str(ep_dir), "--verify"]) == 0
+    assert run_cli(["episodes", "show", str(ep_dir), "--verify"]) == 0
     out, err = capsys.readouterr()
     assert "39 frames" in out and "(torn tail ignored)" in out and not err
 
@@ -102,7 +93,7 @@ def test_files_shorter_than_the_durable_steps_are_corruption(recorded, tmp_path,
     shutil.copytree(recorded, ep_dir)
     with open(ep_dir / fmt.FRAMES, "r+b") as f:
         f.truncate(25 * fmt.FRAME_BYTES)
-    assert _cli(["episodes", "show", str(ep_dir), "--verify"]) == 2
+    assert run_cli(["episodes", "show", str(ep_dir), "--verify"]) == 2
     err = capsys.readouterr().err
     assert f"corrupted at step 25 of the {STEPS} written durably" in err and "end at step" in err
 
@@ -115,7 +106,7 @@ def test_an_episode_a_crash_left_empty_says_so(tmp_path, capsys):
     meta.pop("end", None)
     (ep_dir / fmt.META).write_text(json.dumps(meta))
     (ep_dir / fmt.SYNCED).unlink(missing_ok=True)
-    assert _cli(["episodes", "show", str(ep_dir), "--verify"]) == 0
+    assert run_cli(["episodes", "show", str(ep_dir), "--verify"]) == 0
     assert "empty: no step was written before the run ended" in capsys.readouterr().out
 
 
@@ -126,10 +117,10 @@ def test_salvage_keeps_every_intact_step_in_a_new_episode_that_verifies(recorded
     shutil.copytree(recorded, ep_dir)
     _flip(ep_dir / fmt.FRAMES, 12 * fmt.FRAME_BYTES + 7)
     before = (ep_dir / fmt.FRAMES).read_bytes()
-    assert _cli(["episodes", "salvage", str(ep_dir), "-o", str(tmp_path / "out")]) == 0
+    assert run_cli(["episodes", "salvage", str(ep_dir), "-o", str(tmp_path / "out")]) == 0
     out = tmp_path / "out" / "ep-salvaged"
     assert f"wrote {out}: {STEPS - 1} intact steps of {STEPS}" in capsys.readouterr().out
-    assert _cli(["episodes", "show", str(out), "--verify"]) == 0
+    assert run_cli(["episodes", "show", str(out), "--verify"]) == 0
     capsys.readouterr()
     saved, original = read_episode(out, verify_all=True), read_episode(recorded)
     kept = [i for i in range(STEPS) if i != 12]

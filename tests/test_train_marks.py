@@ -5,25 +5,15 @@ also when a DataLoader worker reads them again."""
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 import torch
-from episode_factory import image_for, make_step, write_episode
+from episode_factory import image_for, make_step, run_cli, write_episode
 
-from carrt.episodes import cli as episodes_cli
 from carrt.episodes.marks import read_marks
 from training.data import ImitationDataset, WindowDataset
 from training.episodes import load_episodes
 
 STEPS = 50
-
-
-def _cli(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="carrt")
-    episodes_cli.add_parser(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    return args.func(args)
 
 
 def test_training_leaves_every_excluded_step_out_of_every_stage(tmp_path):
@@ -33,8 +23,8 @@ def test_training_leaves_every_excluded_step_out_of_every_stage(tmp_path):
     eps = tmp_path / "eps"
     kept = write_episode(eps, [make_step(i, seed=1) for i in range(STEPS)])
     gone = write_episode(eps, [make_step(i, seed=2) for i in range(STEPS)])
-    _cli(["episodes", "mark", str(kept), "--exclude", "1.0-2.0"])
-    _cli(["episodes", "mark", str(gone), "--exclude-all"])
+    run_cli(["episodes", "mark", str(kept), "--exclude", "1.0-2.0"])
+    run_cli(["episodes", "mark", str(gone), "--exclude-all"])
     episodes = load_episodes([eps])
     assert [ep.n for ep in episodes] == [10, 30] and sum(ep.n for ep in episodes) == 40
     assert [ep.name for ep in episodes] == [f"{kept.name}#0", f"{kept.name}#1"]
