@@ -59,7 +59,7 @@ class DirectBoardLink(BoardLink):
         self.core.boot(secrets.randbits(32), self.now_ms())
         self._tick_offset = self.plant.step(0.0, 1500, 1500)
         self._ser = _CoreWire(self)  # type: ignore[assignment]
-        self._write(_hello_request())
+        self._send(_hello_request)
         if self.board is None:
             raise HandshakeTimeout("the in-process firmware core did not say HELLO")
         self._connected.set()
@@ -99,7 +99,7 @@ class DirectBoardLink(BoardLink):
         return self.core.state
 
 
-def _hello_request() -> bytes:
+def _hello_request(seq: int) -> bytes:
     from firmware_bridge.codec import encode_frame
 
-    return encode_frame(m.HelloRequest(), 0)
+    return encode_frame(m.HelloRequest(), seq)

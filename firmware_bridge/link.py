@@ -76,7 +76,8 @@ class BoardLink(Requests):
         )
 
         self._ser: serial.Serial | None = None
-        self._write_lock = threading.Lock()
+        # re-entrant: the in-process board (direct.py) answers inside the write that it reads
+        self._write_lock = threading.RLock()
         self._state_lock = threading.Lock()
         self._steering = 0
         self._throttle = 0
@@ -88,6 +89,14 @@ class BoardLink(Requests):
         self._arm_sent_seq: int | None = None
         self._clear_sent_seq: int | None = None
         self.last_arm_refusal: m.ArmRefusal | None = None
+        # The car's CONFIG, sent again to every new boot before anything else (keep_config);
+        # until the board has acknowledged it no ARM goes out, so a rebooted board never drives
+        # on its defaults (throttle limit, the receiver's rules).
+        self._car_config: m.Config | None = None
+        self._config_pending = False
+        self._restore: tuple[float, threading.Event, list] | None = None  # sent at, answer
+        self._restore_seq = 0
+        self.config_restore_error: str | None = None  # the board refused the car's CONFIG
         self._connected = threading.Event()
         self._running = False
         self._threads: list[threading.Thread] = []
@@ -180,6 +189,8 @@ class BoardLink(Requests):
     def board_rebooted(self, info: BoardInfo) -> None:
         with self._state_lock:
             self._want_arm = False
+            self._config_pending = self._car_config is not None
+            self._restore = None
         if self.on_reboot is not None:
             self.on_reboot(info)
 
@@ -370,11 +381,17 @@ class BoardLink(Requests):
     def _next_seq(self) -> int:
         return next(self._seq) & 0xFFFF
 
-    def _write(self, data: bytes) -> bool:
+    def _send(self, make_frame: Callable[[int], bytes]) -> bool:
+        """Number a frame and write it under one lock: frames reach the board in the order of
+        their sequence numbers whichever thread sends them (the sender thread, the loop's
+        send_now, an e-stop from the joystick's thread, a request). Numbered under one lock and
+        written under another, an older COMMAND could follow a newer one: its AUTO flag going
+        back to 0 hands the wheels to the receiver, and the board's last_seq runs backwards."""
         with self._write_lock:
             ser = self._ser
             if ser is None:
                 return False
+            data = make_frame(self._next_seq())
             try:
                 ser.write(b"\x00" + data)  # leading delimiter: the board resyncs after noise
             except (serial.SerialException, OSError):
@@ -384,13 +401,18 @@ class BoardLink(Requests):
             return True
 
     def _write_command(self) -> bool:
+        with self._write_lock:  # a rebooted board's CONFIG, then this command, nothing between
+            self._restore_config()
+            return self._send(self._command_frame)
+
+    def _command_frame(self, seq: int) -> bytes:
         with self._state_lock:
             flags = 0
             if self._estop_latched:
                 flags = m.CommandFlags.ESTOP
             elif self._clear_pending:
                 flags = m.CommandFlags.CLEAR
-            elif self._want_arm:
+            elif self._want_arm and not self._config_pending:  # a rebooted board: config first
                 flags = m.CommandFlags.ARM
                 if self._auto:
                     flags |= m.CommandFlags.AUTO
@@ -400,12 +422,11 @@ class BoardLink(Requests):
                 decision_id=self._decision_id,
                 flags=flags,
             )
-            seq = self._next_seq()
             if flags & m.CommandFlags.ARM and self._arm_sent_seq is None:
                 self._arm_sent_seq = seq
             if flags == m.CommandFlags.CLEAR and self._clear_sent_seq is None:
                 self._clear_sent_seq = seq
-        return self._write(encode_frame(command, seq))
+        return encode_frame(command, seq)
 
     def _send_loop(self) -> None:
         next_send = time.monotonic()

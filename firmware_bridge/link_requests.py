@@ -1,6 +1,7 @@
 """The link's requests that wait for their answer: PING → PONG, CONFIG_REQUEST → CONFIG, and
-CONFIG → CONFIG_ACK. A mixin of BoardLink (link.py), which owns the port and the receiving half
-that routes each answer back here by its key."""
+CONFIG → CONFIG_ACK, and the car's CONFIG kept for every new boot of the board. A mixin of
+BoardLink (link.py), which owns the port and the receiving half that routes each answer back
+here by its key."""
 
 from __future__ import annotations
 
@@ -11,9 +12,12 @@ from firmware_bridge import messages as m
 from firmware_bridge.codec import encode_frame
 from firmware_bridge.link_types import LinkError
 
+CONFIG_RETRY_S = 0.1  # a rebooted board's CONFIG is sent again this often until acknowledged
+
 
 class Requests:
-    """Needs the link's `receiver`, `port`, `clock`, `_next_seq()` and `_write()`."""
+    """Needs the link's `receiver`, `port`, `clock`, `counters`, `_state_lock` and `_send()`,
+    and the restore state BoardLink.__init__ sets (`_car_config`, `_config_pending`, ...)."""
 
     receiver: Any
     port: str
@@ -32,17 +36,75 @@ class Requests:
         return self._request(config, (m.ConfigAck.TYPE, None), timeout_s)
 
     def _request(self, message: Any, key: tuple[int, int | None], timeout_s: float) -> Any:
-        seq = self._next_seq()
-        if key[1] is None:  # answered by sequence number (CONFIG_ACK)
-            key = (key[0], seq)
-        event, box = self.receiver.expect(key)
+        keys: list[tuple[int, int]] = []
+        waiter: list[Any] = []
+
+        def frame(seq: int) -> bytes:  # numbered and written under the link's one lock
+            full = (key[0], seq) if key[1] is None else key  # CONFIG_ACK: by sequence number
+            keys.append(full)
+            waiter.extend(self.receiver.expect(full))  # before the write: the answer is fast
+            return encode_frame(message, seq)
+
         try:
-            self._write(encode_frame(message, seq))
-            if not event.wait(timeout_s):
+            if not self._send(frame):
+                raise LinkError(
+                    f"board on {self.port} is not connected: {type(message).__name__} not sent"
+                )
+            if not waiter[0].wait(timeout_s):
                 raise LinkError(
                     f"board on {self.port} did not answer {type(message).__name__} "
                     f"within {timeout_s * 1000:.0f} ms"
                 )
-            return box[0]
+            return waiter[1][0]
         finally:
-            self.receiver.forget(key)
+            for full in keys:
+                self.receiver.forget(full)
+
+    # ------------------------------------------------------------------ the car's config
+    def keep_config(self, config: m.Config, timeout_s: float = 0.5) -> m.ConfigAck:
+        """Send the car's CONFIG now and again to every new boot of the board, before any other
+        frame goes out to it (a brown-out or a USB power cycle would otherwise leave it on its
+        defaults: full throttle, the receiver not the person's controls). Returns the ack."""
+        ack = self.send_config(config, timeout_s)
+        if ack.result == 0:
+            with self._state_lock:
+                self._car_config = config
+        return ack
+
+    @property
+    def config_pending(self) -> bool:
+        """A rebooted board has not yet acknowledged the car's CONFIG (no ARM goes out)."""
+        return self._config_pending
+
+    def _restore_config(self) -> None:
+        """After a reboot: the car's CONFIG on the wire (again every 100 ms until the board
+        acknowledges it), ahead of the command this call precedes."""
+        if not self._config_pending:
+            return
+        restore, now = self._restore, self.clock()
+        if restore is not None and restore[1].is_set():
+            ack = restore[2][0]
+            with self._state_lock:
+                self._restore = None
+                if ack.result == 0:
+                    self._config_pending = False
+                    self.config_restore_error = None
+                    self.counters.configs_restored += 1
+                    return
+                self.config_restore_error = (
+                    f"the board refused the car config (result {ack.result})"
+                )
+        elif restore is not None and now - restore[0] < CONFIG_RETRY_S:
+            return
+        config = self._car_config
+        if config is None:
+            return
+
+        def frame(seq: int) -> bytes:
+            if self._restore is not None:
+                self.receiver.forget((m.ConfigAck.TYPE, self._restore_seq))
+            self._restore_seq = seq
+            self._restore = (now, *self.receiver.expect((m.ConfigAck.TYPE, seq)))
+            return encode_frame(config, seq)
+
+        self._send(frame)

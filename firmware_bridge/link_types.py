@@ -59,6 +59,7 @@ class LinkCounters:
     disconnects: int = 0
     reconnects: int = 0
     reboots_detected: int = 0
+    configs_restored: int = 0  # the car's CONFIG acknowledged by a rebooted board
     bad_crc: int = 0
     bad_length: int = 0
     overruns: int = 0
