@@ -8,6 +8,7 @@ would see it (an older AUTO flag after a newer one hands the wheels back to the 
 
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 import time
@@ -82,7 +83,7 @@ def test_frames_from_three_threads_arrive_in_sequence_order():
         board.close()
     seqs = [seq for seq, message in board.frames if isinstance(message, m.Command)]
     assert len(seqs) > 3000
-    steps = [(b - a) & 0xFFFF for a, b in zip(seqs, seqs[1:])]
+    steps = [(b - a) & 0xFFFF for a, b in itertools.pairwise(seqs)]
     backwards = [i for i, step in enumerate(steps) if step == 0 or step >= 0x8000]
     assert not backwards, (
         f"{len(backwards)} of {len(steps)} frames reached the board after a newer one "
