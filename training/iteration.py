@@ -175,6 +175,7 @@ class Start:
     stages: list[str]
     policy: dict | None = None  # the previous checkpoint's state dicts
     world_model: dict | None = None
+    refine_start: dict | None = None  # a resumed refinement: the policy it started from
 
 
 def run(cfg: IterateConfig, dist: Dist | None = None, variants: Variants | None = None) -> dict:
@@ -210,6 +211,7 @@ def run(cfg: IterateConfig, dist: Dist | None = None, variants: Variants | None 
                 ctx,
                 existing.get(stage),
                 variants,
+                start.refine_start,
             )
     finally:
         if ctx.writer is not None:
@@ -283,6 +285,8 @@ def resume_checkpoints(cfg: IterateConfig, start: Start, digest: str, policy, wo
     existing = ck.resumable(out, targets, profile=cfg.profile, digest=digest)
     for stage in start.stages:  # later stages' checkpoints hold the newer weights: load in order
         if stage in existing:
+            if stage == "refine":  # its anchor is the policy it started from, not its own
+                start.refine_start = {k: v.clone() for k, v in policy.state_dict().items()}
             _load_weights(existing[stage], policy, world_model)
     return existing
 
@@ -322,7 +326,10 @@ def pace_of(cfg: IterateConfig, dist: Dist):
     return Pace(f"{dist.device}/threads{torch.get_num_threads()}")
 
 
-def train_stage(stage, cfg, policy, world_model, data: StageData, norm, ctx, resume, variants=None):
+def train_stage(
+    stage, cfg, policy, world_model, data: StageData, norm, ctx, resume, variants=None,
+    refine_start=None,
+):  # fmt: skip
     from training.imitation import train_imitation
     from training.refine import train_refine
     from training.world_model_stage import collision_class_weight, train_world_model
@@ -345,6 +352,7 @@ def train_stage(stage, cfg, policy, world_model, data: StageData, norm, ctx, res
     return train_refine(
         cfg, policy, world_model, data.windows, norm, ctx,
         resume=resume, val_dataset=data.val_windows, demonstrations=demonstrations,
+        start_policy=refine_start,
     )  # fmt: skip
 
 

@@ -162,11 +162,14 @@ def train_refine(
     val_dataset=None,
     demonstrations=None,
     step_loss=None,
+    start_policy: dict | None = None,
 ) -> StageResult:
     """Refine `policy` in place against the frozen `world_model` from the dataset's start frames;
     `demonstrations` (an ImitationDataset) feeds the `refine_w_imitation` term. `step_loss(cfg,
     world_model, batch, actions, mu, weights)` → (loss, metrics) replaces the paper's imagined
-    objective (a research variant); the safeguard terms are added to either."""
+    objective (a research variant); the safeguard terms are added to either. `start_policy`
+    (a state dict): the policy refinement started from, when `resume` continues it (`policy`
+    then holds the resumed weights), so the anchor is the same as in a run never stopped."""
     ctx = ctx or RunContext()
     device = ctx.dist.device
     policy.to(device)
@@ -178,6 +181,8 @@ def train_refine(
     # The policy as refinement found it (imitation's, or the previous iteration's), frozen:
     # the anchor term measures every step's plan against it.
     start = copy.deepcopy(policy).eval().requires_grad_(False) if cfg.refine_w_anchor else None
+    if start is not None and start_policy is not None:
+        start.load_state_dict(start_policy)
     demos = demonstrations if cfg.refine_w_imitation and demonstrations is not None else None
     if demos is not None and len(demos) == 0:
         demos = None  # nothing a person drove in this data: the term has nothing to hold on to
