@@ -1,9 +1,12 @@
 """training/iterate.py end to end on the simulator's episodes (tiny profile, a handful of steps).
 
-One iteration writes the policy, the world model, checkpoints, report.md with held-out metrics,
-figures and an ONNX policy carrt loads; the next iteration starts from it; an interrupted run
-resumes exactly where it stopped; torchrun with two gloo processes trains the same way; bad
-input is one line and exit status 2.
+One iteration is imitation alone: the policy, its checkpoint, report.md with held-out metrics,
+figures and an ONNX policy carrt loads, and no world model anywhere. --dirl adds OUT/refined/
+(the world model, refinement, their report) beside it and leaves OUT/policy.onnx byte for byte,
+printing its measured status once; the numbers in that line are the committed results'. The
+next iteration is a take-over round from it; an interrupted run resumes exactly where it
+stopped; torchrun with two gloo processes trains the same way; bad input is one line and exit
+status 2.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ torch = pytest.importorskip("torch")
 
 from training import checkpoint as ck  # noqa: E402
 from training.data import load_episodes  # noqa: E402
-from training.iterate import main  # noqa: E402
+from training.iterate import DIRL_MEASURED, DIRL_STATUS, main  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = [
@@ -47,63 +50,83 @@ QUICK = [*SMALL, "--set", "export=false", "--set", "figures=false", "--set", "ck
 
 
 @pytest.fixture(scope="module")
-def iteration1(sim_episodes, tmp_path_factory):
+def runs(sim_episodes, tmp_path_factory):
+    """One iteration as carrt-train runs it by default (imitation alone, export and figures on),
+    what it wrote then, and the same command again with --dirl into the same folder."""
     out = tmp_path_factory.mktemp("runs") / "iter1"
     before = torch.get_num_threads()
-    rc = main(["--episodes", str(sim_episodes), "--out", str(out), *SMALL, *steps(6, 6, 4)])
-    torch.set_num_threads(before)
-    return rc, out
-
-
-def test_iteration_writes_policy_report_figures_and_onnx(iteration1, sim_episodes):
-    rc, out = iteration1
-    assert rc == 0
-    for name in ("policy.pt", "world_model.pt", "report.md", "metrics.json", "policy.onnx"):
-        assert (out / name).is_file(), name
-    assert {p.name for p in (out / "checkpoints").iterdir()} == {
-        "imitation.pt",
-        "world_model.pt",
-        "refine.pt",
+    argv = ["--episodes", str(sim_episodes), "--out", str(out), *SMALL, *steps(6, 6, 4)]
+    rc = main(argv)
+    plain = {
+        "rc": rc,
+        "files": sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()),
+        "report": (out / "report.md").read_text(),
+        "metrics": json.loads((out / "metrics.json").read_text()),
+        "onnx": (out / "policy.onnx").read_bytes(),
     }
+    with _captured() as said:
+        rc = main([*argv, "--dirl"])
+    torch.set_num_threads(before)
+    return out, plain, {"rc": rc, "said": said.getvalue()}
+
+
+class _captured:
+    """stdout of a block (the module fixture cannot take capsys)."""
+
+    def __enter__(self):
+        import contextlib
+        import io
+
+        self.buffer = io.StringIO()
+        self._redirect = contextlib.redirect_stdout(self.buffer)
+        self._redirect.__enter__()
+        return self.buffer
+
+    def __exit__(self, *exc):
+        self._redirect.__exit__(*exc)
+
+
+def test_a_run_is_imitation_alone_and_writes_no_world_model(runs, sim_episodes):
+    out, plain, _ = runs
+    assert plain["rc"] == 0
+    for name in ("policy.pt", "report.md", "metrics.json", "policy.onnx"):
+        assert name in plain["files"], name
+    assert "world_model.pt" not in plain["files"]
+    assert [f for f in plain["files"] if f.startswith("checkpoints/")] == [
+        "checkpoints/imitation.pt"
+    ]
+    assert not any(f.startswith("refined/") for f in plain["files"])
     assert any((out / "tensorboard").iterdir())
 
     policy, saved = ck.load_policy(out / "policy.pt")
-    assert saved["stage"] == "refine" and saved["step"] == 4 and saved["iteration"] == 1
+    assert saved["stage"] == "imitation" and saved["step"] == 6 and saved["iteration"] == 0
     assert saved["optimizer"] is None and saved["world_model"] is None
-    assert ck.load_checkpoint(out / "world_model.pt")["world_model"] is not None
 
-    report = (out / "report.md").read_text()
-    for needle in ("speed MAE", "constant speed", "collision AUROC", "imitation L1",
-                   "training data digest", "held out", "to steering ±0.6"):  # fmt: skip
+    report = plain["report"]
+    for needle in ("imitation L1", "training data digest", "held out", "imitation"):
         assert needle in report, needle
-    for png in ("loss_curves.png", "uncertainty_vs_error.png", "reveries.png"):
-        assert (out / "figures" / png).stat().st_size > 10_000
-        assert f"](figures/{png})" in report  # relative links
-    record = json.loads((out / "metrics.json").read_text())
+    for absent in ("world model", "world_model", "speed MAE", "AUROC", "Reveries", "refine"):
+        assert absent not in report, absent
+    assert (out / "figures" / "loss_curves.png").stat().st_size > 10_000
+    assert "](figures/loss_curves.png)" in report  # relative links
+    assert [f for f in plain["files"] if f.startswith("figures/")] == ["figures/loss_curves.png"]
+    record = plain["metrics"]
     m = record["metrics"]
-    assert m["held_out"] and m["windows"] > 0
-    assert np.isfinite(m["speed_mae_mps"]) and np.isfinite(m["baseline_speed_mae_mps"])
-    assert np.isfinite(m["imitation_l1"])
-    assert m["response_steering_image"] >= 0 and m["response_throttle_speed"] >= 0
-    if m["collision_steps"] > 0:  # which episodes are held out depends on their names
-        assert 0.0 <= m["collision_auroc"] <= 1.0
-    else:
-        assert m["collision_auroc"] is None  # NaN is written as null
-    assert record["stages"]["imitation"]["steps"] == 6
+    assert m["held_out"] and np.isfinite(m["imitation_l1"])
+    assert not any(k.startswith(("speed_", "collision_", "response_", "spearman")) for k in m)
+    assert list(record["stages"]) == ["imitation"] and record["stages"]["imitation"]["steps"] == 6
     assert record["data"]["episodes"] == 7
     # the export ran as carrt-export's process; its report is in metrics.json and report.md
     import hashlib
 
-    assert (
-        record["export"]["sha256"] == hashlib.sha256((out / "policy.onnx").read_bytes()).hexdigest()
-    )
+    assert record["export"]["sha256"] == hashlib.sha256(plain["onnx"]).hexdigest()
     assert f"wrote {out / 'policy.onnx'}" in report and "parity" in report
 
     from carrt.policy import OnnxPolicy
 
     onnx_policy = OnnxPolicy(out / "policy.onnx")
     assert onnx_policy.horizon == 10
-    assert onnx_policy.metadata["carrt.iteration"] == "1"
+    assert onnx_policy.metadata["carrt.iteration"] == "0"
     assert onnx_policy.metadata["carrt.training_data_digest"] == saved["data_digest"]
     from carrt.episodes.reader import list_episodes, read_episode
 
@@ -114,73 +137,135 @@ def test_iteration_writes_policy_report_figures_and_onnx(iteration1, sim_episode
     assert np.allclose(onnx_policy.predict(frame, speed).mu, mu[0].numpy(), atol=1e-4)
 
 
-def test_next_iteration_starts_from_the_previous_one(iteration1, sim_episodes, tmp_path):
-    _, prev = iteration1
+def test_dirl_writes_the_refined_policy_beside_the_imitated_one_never_over_it(runs):
+    """--dirl: the status line once; OUT/refined/ is the world model and refinement's run (its
+    report with the world model's held-out metrics); OUT/policy.onnx is byte for byte the
+    imitation export, and OUT/report.md says how far refinement moved the plan."""
+    out, plain, dirl = runs
+    assert dirl["rc"] == 0
+    said = dirl["said"]
+    assert said.count(DIRL_STATUS) == 1 and said.count("not validated") == 1
+    assert (out / "policy.onnx").read_bytes() == plain["onnx"]
+    assert not (out / "world_model.pt").exists()
+    assert ck.load_checkpoint(out / "policy.pt")["stage"] == "imitation"
+    refined = out / "refined"
+    for name in ("policy.pt", "policy.onnx", "world_model.pt", "report.md", "metrics.json"):
+        assert (refined / name).is_file(), name
+    assert {p.name for p in (refined / "checkpoints").iterdir()} == {
+        "world_model.pt",
+        "refine.pt",
+    }  # no imitation again: refinement starts from OUT's policy
+    saved = ck.load_checkpoint(refined / "policy.pt")
+    assert saved["stage"] == "refine" and saved["step"] == 4 and saved["iteration"] == 1
+    imitated = ck.load_checkpoint(out / "policy.pt")
+    assert saved["normalisation"] == imitated["normalisation"]
+    assert any(not torch.equal(v, imitated["policy"][k]) for k, v in saved["policy"].items())
+    assert (refined / "policy.onnx").read_bytes() != plain["onnx"]
+
+    report = (refined / "report.md").read_text()
+    for needle in ("speed MAE", "constant speed", "collision AUROC", "imitation L1",
+                   "to steering ±0.6"):  # fmt: skip
+        assert needle in report, needle
+    for png in ("loss_curves.png", "uncertainty_vs_error.png", "reveries.png"):
+        assert (refined / "figures" / png).stat().st_size > 10_000
+        assert f"](figures/{png})" in report
+    m = json.loads((refined / "metrics.json").read_text())["metrics"]
+    assert m["held_out"] and m["windows"] > 0 and np.isfinite(m["speed_mae_mps"])
+    assert m["response_steering_image"] >= 0 and m["response_throttle_speed"] >= 0
+    if m["collision_steps"] > 0:  # which episodes are held out depends on their names
+        assert 0.0 <= m["collision_auroc"] <= 1.0
+    else:
+        assert m["collision_auroc"] is None  # NaN is written as null
+
+    top = (out / "report.md").read_text()
+    assert top.count("## The world model and refinement (--dirl)") == 1
+    assert "](refined/report.md)" in top and "|Δμ| on" in top and "not validated" in top
+    assert top.index("(--dirl)") < top.index("## Figures") < top.index("## Export")
+    change = json.loads((out / "metrics.json").read_text())["refined"]
+    assert change["frames"] > 0 and change["held_out"]
+    moved = change["steering"]["mean_abs"] + change["throttle"]["mean_abs"]
+    assert moved > 0 and change["steering"]["max_abs"] >= change["steering"]["mean_abs"]
+    assert "refinement moved the plan: |Δμ|" in said
+
+
+@pytest.mark.parametrize("what, path, pair, sigma, value", DIRL_MEASURED)
+def test_the_status_line_quotes_the_committed_results(what, path, pair, sigma, value, capsys):
+    """Each number the --dirl line prints is what research.paired_table computes from the
+    results file it names, for that pair."""
+    from research.paired_table import main as paired_table
+
+    assert (ROOT / path).is_file(), path
+    assert paired_table([str(ROOT / path), "--sigma", str(sigma), "--pair", pair]) == 0
+    model, base = pair.split(":")
+    row = next(line for line in capsys.readouterr().out.splitlines()
+               if line.startswith(f"| {model} | {base} |"))  # fmt: skip
+    assert row.split(" | ")[2] == value, row
+    assert f"{value} {what} ({Path(path).name})" in DIRL_STATUS
+
+
+def test_a_next_iteration_is_a_take_over_round(runs, sim_episodes, tmp_path):
+    """--init: the previous policy imitates again, with its input scaling, reimitation_steps at
+    reimitation_lr (the rounds' measured fine-tune), and no world model is made."""
+    prev, _, _ = runs
     out = tmp_path / "iter2"
     argv = ["--episodes", str(sim_episodes), "--out", str(out), "--init", str(prev)]
-    assert main([*argv, *QUICK, *steps(6, 2, 2)]) == 0
-    assert not (out / "checkpoints" / "imitation.pt").exists()  # imitation runs once
-    saved = ck.load_checkpoint(out / "policy.pt")
-    assert saved["iteration"] == 2 and saved["profile"] == "tiny"  # profile taken from --init
+    flags = ["--set", "reimitation_steps=3", "--set", "reimitation_lr=2e-4"]
+    assert main([*argv, *QUICK, *steps(6, 2, 2), *flags]) == 0
+    imitated = ck.load_checkpoint(out / "checkpoints" / "imitation.pt")
     first = ck.load_checkpoint(prev / "policy.pt")
-    assert saved["normalisation"] == first["normalisation"]
-    wm = ck.load_checkpoint(out / "checkpoints" / "world_model.pt")
-    assert [h["step"] for h in wm["history"]] == [1, 2]
-    assert "iteration 2" in (out / "report.md").read_text()
+    assert imitated["step"] == 3 and imitated["iteration"] == 1 and imitated["profile"] == "tiny"
+    assert imitated["config"]["imitation_lr"] == 2e-4
+    assert imitated["normalisation"] == first["normalisation"], "the previous policy's scaling"
+    changed = [k for k, v in imitated["policy"].items() if not torch.equal(v, first["policy"][k])]
+    assert changed, "imitation trained the previous policy further"
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["imitation.pt"]
+    assert not (out / "world_model.pt").exists() and not (out / "refined").exists()
+    assert "iteration 1: imitation" in (out / "report.md").read_text()
 
 
-def test_a_fresh_world_model_starts_from_its_own_initialisation_not_inits(
-    iteration1, sim_episodes, tmp_path
-):
-    """world_model_fresh (an ensemble member): the policy still comes from --init, the world
-    model from its seeded initialisation; without it both come from --init."""
-    _, prev = iteration1
+def test_research_runs_keep_one_dirl_iteration_in_place(runs, sim_episodes, tmp_path):
+    """The machinery with `dirl` (research/variants/train.py's every run): --init continues the
+    previous policy and world model (or the world model's own initialisation with
+    world_model_fresh), reimitate imitates first, and policy.pt is the last stage's."""
+    from training.iteration import main as one_run
+
+    prev = runs[0] / "refined"
     before = ck.load_checkpoint(prev / "world_model.pt")["world_model"]
+    first = ck.load_checkpoint(prev / "policy.pt")["policy"]
     saved = {}
     for fresh in (False, True):
         out = tmp_path / f"fresh-{fresh}"
         argv = ["--episodes", str(sim_episodes), "--out", str(out), "--init", str(prev)]
         flag = ["--set", f"world_model_fresh={str(fresh).lower()}", "--seed", "7"]
-        assert main([*argv, *QUICK, *steps(0, 0, 0), *flag]) == 0
+        assert one_run([*argv, *QUICK, *steps(0, 0, 0), *flag], dirl=True) == 0
         saved[fresh] = ck.load_checkpoint(out / "world_model.pt")
-    first = ck.load_checkpoint(prev / "policy.pt")["policy"]
-    for ckpt in saved.values():
-        assert all(torch.equal(v, first[k]) for k, v in ckpt["policy"].items())
+    for c in saved.values():
+        assert all(torch.equal(v, first[k]) for k, v in c["policy"].items())
     assert all(torch.equal(v, before[k]) for k, v in saved[False]["world_model"].items())
     differ = [k for k, v in saved[True]["world_model"].items() if not torch.equal(v, before[k])]
     assert any(k.startswith("gru") for k in differ), "the fresh one is not --init's"
 
-
-def test_reimitate_learns_again_from_the_previous_policy_before_the_world_model(
-    iteration1, sim_episodes, tmp_path
-):
-    """reimitate (the study's take-overs): a later iteration first learns by imitation, from
-    the previous policy and with its input scaling, and the world model and refinement start
-    from what that imitation made."""
-    _, prev = iteration1
-    out = tmp_path / "iter2"
+    out = tmp_path / "reimitated"
     argv = ["--episodes", str(sim_episodes), "--out", str(out), "--init", str(prev)]
-    assert main([*argv, *QUICK, *steps(6, 2, 2), "--set", "reimitate=true"]) == 0
+    assert one_run([*argv, *QUICK, *steps(6, 2, 2), "--set", "reimitate=true"], dirl=True) == 0
     imitated = ck.load_checkpoint(out / "checkpoints" / "imitation.pt")
-    first = ck.load_checkpoint(prev / "policy.pt")
     assert imitated["step"] == 6 and imitated["iteration"] == 2
-    assert imitated["normalisation"] == first["normalisation"], "the previous policy's scaling"
-    changed = [k for k, v in imitated["policy"].items() if not torch.equal(v, first["policy"][k])]
-    assert changed, "imitation trained the previous policy further"
     wm = ck.load_checkpoint(out / "checkpoints" / "world_model.pt")
     assert all(torch.equal(v, imitated["policy"][k]) for k, v in wm["policy"].items())
+    assert [h["step"] for h in wm["history"]] == [1, 2]
+    assert ck.load_checkpoint(out / "policy.pt")["stage"] == "refine"
 
 
 def test_world_episodes_teach_the_world_model_and_refinement_starts_from_episodes(
-    iteration1, sim_episodes, tmp_path, monkeypatch
+    runs, sim_episodes, tmp_path, monkeypatch
 ):
-    """--world-episodes: the world model learns those episodes (weight for weight what a run
-    on them alone learns), and refinement starts from --episodes' states in that world model."""
+    """--dirl --world-episodes: the world model learns those episodes (weight for weight what
+    a --dirl run on them alone learns), and refinement starts from --episodes' states in it."""
     import shutil
 
     from training import refine
 
-    _, prev = iteration1
+    prev = runs[0]
     world = tmp_path / "sloppy"
     for ep in sorted(p for p in sim_episodes.iterdir() if p.is_dir())[-4:]:
         shutil.copytree(ep, world / ep.name)
@@ -194,50 +279,59 @@ def test_world_episodes_teach_the_world_model_and_refinement_starts_from_episode
         return real(cfg, policy, world_model, windows, *a, **kw)
 
     monkeypatch.setattr(refine, "train_refine", recording)
+    same = ["--init", str(prev), "--dirl", "--set", "reimitation_steps=0"]
     one = tmp_path / "one-run"
-    argv = ["--episodes", str(sim_episodes), "--world-episodes", str(world), "--init", str(prev)]
+    argv = ["--episodes", str(sim_episodes), "--world-episodes", str(world), *same]
     assert main([*argv, "--out", str(one), *QUICK, *steps(0, 3, 2)]) == 0
     world_run = tmp_path / "world-run"
-    argv = ["--episodes", str(world), "--out", str(world_run), "--init", str(prev)]
+    argv = ["--episodes", str(world), "--out", str(world_run), *same]
     assert main([*argv, *QUICK, *steps(0, 3, 0)]) == 0
 
-    learnt = ck.load_checkpoint(world_run / "world_model.pt")["world_model"]
-    saved = ck.load_checkpoint(one / "world_model.pt")["world_model"]
+    learnt = ck.load_checkpoint(world_run / "refined" / "world_model.pt")["world_model"]
+    saved = ck.load_checkpoint(one / "refined" / "world_model.pt")["world_model"]
     assert all(torch.equal(v, learnt[k]) for k, v in saved.items())
     names, refined_in = starts[0]  # the one run's (the world-model run calls it for 0 steps)
     assert all(torch.equal(v, learnt[k]) for k, v in refined_in.items())
     policy_eps = {p.name for p in sim_episodes.iterdir() if p.is_dir()}
     assert names <= policy_eps and names - {p.name for p in world.iterdir()}
-    record = json.loads((one / "metrics.json").read_text())["data"]
+    record = json.loads((one / "refined" / "metrics.json").read_text())["data"]
     learnt_eps = load_episodes([str(world)])
     assert record["world_model_episodes"]["episodes"] == len(learnt_eps) > 0
     assert record["world_model_episodes"]["frames"] == sum(ep.n for ep in learnt_eps)
-    assert "--world-episodes" in (one / "report.md").read_text()
+    assert "--world-episodes" in (one / "refined" / "report.md").read_text()
+    assert json.loads((one / "metrics.json").read_text())["data"]["world_model_episodes"] is None
 
 
 def test_an_interrupted_run_resumes_where_it_stopped(sim_episodes, tmp_path, capsys):
-    argv = ["--episodes", str(sim_episodes), *QUICK, *steps(4, 4, 4)]
+    """stop_after stops imitation part way, and the same command again ends bit-identical to the
+    run that never stopped; with --dirl, refinement stopped part way resumes the same way, its
+    imitation untouched."""
+    argv = ["--episodes", str(sim_episodes), *QUICK, *steps(4, 3, 3), "--dirl"]
     straight = tmp_path / "straight"
     assert main([*argv, "--out", str(straight)]) == 0
 
     out = tmp_path / "interrupted"
     capsys.readouterr()
-    assert main([*argv, "--out", str(out), "--set", "stop_after=5"]) == 0
+    assert main([*argv, "--out", str(out), "--set", "stop_after=2"]) == 0
     assert "run the same command to resume" in capsys.readouterr().out
-    assert not (out / "policy.pt").exists()
-    assert ck.load_checkpoint(out / "checkpoints" / "imitation.pt")["step"] == 4
-    assert ck.load_checkpoint(out / "checkpoints" / "world_model.pt")["step"] == 1
+    assert not (out / "policy.pt").exists() and not (out / "refined").exists()
+    assert ck.load_checkpoint(out / "checkpoints" / "imitation.pt")["step"] == 2
+    assert main([*argv, "--out", str(out), "--set", "stop_after=5"]) == 0  # imitation ends
+    refined = out / "refined"
+    assert ck.load_checkpoint(refined / "checkpoints" / "refine.pt")["step"] == 2
+    assert not (refined / "policy.pt").exists()
     imitation_bytes = (out / "checkpoints" / "imitation.pt").read_bytes()
 
     assert main([*argv, "--out", str(out)]) == 0
     assert (out / "checkpoints" / "imitation.pt").read_bytes() == imitation_bytes  # not redone
-    wm = ck.load_checkpoint(out / "checkpoints" / "world_model.pt")
-    assert wm["step"] == 4 and [h["step"] for h in wm["history"]] == [1, 2, 3, 4]
-    resumed = ck.load_checkpoint(out / "policy.pt")
-    reference = ck.load_checkpoint(straight / "policy.pt")
-    assert resumed["step"] == 4
-    for k, v in reference["policy"].items():  # bit-identical to the run that never stopped
-        assert torch.equal(v, resumed["policy"][k]), k
+    wm = ck.load_checkpoint(refined / "checkpoints" / "world_model.pt")
+    assert wm["step"] == 3 and [h["step"] for h in wm["history"]] == [1, 2, 3]
+    for name in ("policy.pt", "refined/policy.pt"):
+        resumed = ck.load_checkpoint(out / name)
+        reference = ck.load_checkpoint(straight / name)
+        assert resumed["step"] == reference["step"] > 0
+        for k, v in reference["policy"].items():  # bit-identical to the run that never stopped
+            assert torch.equal(v, resumed["policy"][k]), (name, k)
 
 
 def test_two_processes_with_gloo(sim_episodes, tmp_path):
@@ -250,9 +344,17 @@ def test_two_processes_with_gloo(sim_episodes, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     record = json.loads((out / "metrics.json").read_text())
     assert record["world_size"] == 2
-    assert ck.load_checkpoint(out / "policy.pt")["step"] == 2
+    assert ck.load_checkpoint(out / "policy.pt")["step"] == 3
+    assert not (out / "world_model.pt").exists()
     assert len(list((out / "tensorboard").iterdir())) == 1  # only rank 0 writes
     assert proc.stdout.count("wrote ") == 1
+
+
+def test_dirl_under_torchrun_is_refused_in_one_line(sim_episodes, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    assert main(["--episodes", str(sim_episodes), "--out", str(tmp_path / "o"), "--dirl"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not under torchrun" in err, err
 
 
 @pytest.mark.parametrize(
@@ -273,10 +375,21 @@ def test_two_processes_with_gloo(sim_episodes, tmp_path):
         (["--out", "{tmp}/o", "--episodes", "{sim}", "--device", "gpu"], "not a device"),
         (["--out", "{tmp}/o", "--episodes", "{sim}", "--init", "{tmp}/nothing"], "--init"),
         (
-            ["--out", "{tmp}/o", "--episodes", "{sim}", "--world-episodes", "{tmp}/missing"],
+            [
+                "--out",
+                "{tmp}/o",
+                "--episodes",
+                "{sim}",
+                "--world-episodes",
+                "{tmp}/missing",
+                "--dirl",
+            ],
             "--world-episodes {tmp}/missing: no such directory",
         ),
-        (["--out", "{tmp}/o", "--episodes", "{sim}", "--world-episodes", "{tmp}"], "no episodes"),
+        (
+            ["--out", "{tmp}/o", "--episodes", "{sim}", "--world-episodes", "{tmp}", "--dirl"],
+            "no episodes",
+        ),
         (
             [
                 "--out",
@@ -285,11 +398,18 @@ def test_two_processes_with_gloo(sim_episodes, tmp_path):
                 "{sim}",
                 "--world-episodes",
                 "{sim}",
+                "--dirl",
                 "--set",
                 "world_model_steps=0",
             ],
             "world_model_steps is 0",
         ),
+        (
+            ["--out", "{tmp}/o", "--episodes", "{sim}", "--world-episodes", "{sim}"],
+            "--world-episodes is what the world model learns: it needs --dirl",
+        ),
+        (["--out", "{tmp}/o", "--episodes", "{sim}", "--no-uncertainty"], "it needs --dirl"),
+        (["--out", "{tmp}/o", "--episodes", "{sim}", "--set", "dirl=true"], "use --dirl"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, message, sim_episodes, tmp_path, capsys):
@@ -301,8 +421,8 @@ def test_bad_input_is_one_line_and_exit_2(args, message, sim_episodes, tmp_path,
     assert captured.out == ""
 
 
-def test_resuming_into_a_run_of_another_profile_is_refused(iteration1, sim_episodes, capsys):
-    _, out = iteration1
+def test_resuming_into_a_run_of_another_profile_is_refused(runs, sim_episodes, capsys):
+    out = runs[0]
     assert main(["--episodes", str(sim_episodes), "--out", str(out), "--profile", "cpu"]) == 2
     assert "holds a run with profile tiny" in capsys.readouterr().err
 

@@ -38,10 +38,10 @@ def test_both_backbones_start_from_the_file(sim_episodes, tmp_path):
     state = _state_file(path, PROFILES["tiny"].width)
     out = tmp_path / "run"
     argv = ["--episodes", str(sim_episodes), "--out", str(out), "--pretrained", str(path)]
-    assert main([*argv, *SMALL]) == 0
+    assert main([*argv, *SMALL, "--dirl"]) == 0
     torch.set_num_threads(before)
     policy, _ = ck.load_policy(out / "policy.pt")
-    world_model, _ = ck.load_world_model(out / "world_model.pt")
+    world_model, _ = ck.load_world_model(out / "refined" / "world_model.pt")  # --dirl's run
     for model in (policy, world_model):  # no steps: the weights are the file's
         for name, value in model.backbone.state_dict().items():
             assert torch.equal(value, state[name]), name

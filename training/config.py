@@ -8,7 +8,7 @@ of steps and batch sizes (PRESETS); `--set field=value` overrides any field.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 from carrt.errors import UserError
 from carrt.settings import apply_sets
@@ -29,6 +29,12 @@ class IterateConfig:
 
     # -- data and run
     episodes: tuple[str, ...] = ()  # episode directories, or directories of them
+    # This run trains the world model and refines the policy in it (stages 2 and 3) after
+    # imitation; off, a run is imitation alone (stage 1) and writes no world model. Not a --set
+    # field: carrt-train's --dirl runs those stages into OUT/refined/, beside the imitated
+    # OUT/policy.* and never over it (training/iterate.py); research/variants/train.py sets it
+    # on every run, its policy.* the last stage's. What they were measured to do: research/
+    dirl: bool = False
     # episodes the world model learns INSTEAD of `episodes` (--world-episodes), e.g. a sloppier
     # person's drives, whose errors show what steering off the line does; imitation and
     # refinement still read `episodes`. Empty: the world model learns `episodes` (the paper's)
@@ -57,11 +63,19 @@ class IterateConfig:
     augment_brightness: float = 0.2  # max brightness shift, share of full scale
     augment_contrast: float = 0.2  # max relative contrast change
     mirror_imitation: bool = False  # mirror half of each batch, steering negated (augment.py)
-    # A later iteration (--init) learns by imitation again before the world model: from the
-    # previous policy, imitation_steps on every labelled frame given, the demonstrations and the
-    # person's take-overs in the new drives (states the policy itself reached, DAgger-style;
-    # the loop's --takeovers sets it). False: the paper's Algorithm 1, imitation once.
+    # With `dirl` (research/variants/train.py's runs), a later iteration (--init) learns by
+    # imitation again before the world model: from the previous policy, imitation_steps on every
+    # labelled frame given, the demonstrations and the person's take-overs in the new drives
+    # (states the policy itself reached, DAgger-style). False: the paper's Algorithm 1,
+    # imitation once. carrt-train's --init always imitates again (a take-over round, below).
     reimitate: bool = False
+    # carrt-train's take-over round (--init, and each of --iterations' rounds): imitation again
+    # from the previous policy, a fine-tune of this many steps at this learning rate in place of
+    # imitation_steps and imitation_lr, the setting the rounds were measured with (cpu profile,
+    # +0.057 ± 0.031 completion against imitation at equal frames after three rounds:
+    # research/README.md row 2, research/results/takeover_5seeds_rerun.json.gz)
+    reimitation_steps: int = 1000
+    reimitation_lr: float = 3e-4
     # -- stage 2: world model (evidential image/speed regression + collision classification)
     world_model_steps: int = 30000  # optimizer steps (our choice)
     world_model_batch_size: int = 32  # global batch (paper: 32)
@@ -145,7 +159,7 @@ class IterateConfig:
         positive = [
             "imitation_batch_size", "world_model_batch_size", "refine_batch_size", "log_every",
             "imitation_lr", "world_model_lr", "refine_lr", "grad_clip", "uncertainty_clip",
-            "imitation_lr_final",
+            "imitation_lr_final", "reimitation_lr",
             "eval_windows", "outcome_temperature", "outcome_weight_max",
         ]  # fmt: skip
         for name in positive:
@@ -157,6 +171,7 @@ class IterateConfig:
             "augment_hue", "augment_saturation", "augment_brightness", "augment_contrast",
             "counterfactual_starts", "refine_w_anchor", "refine_w_imitation",
             "refine_candidates_every", "refine_search_margin", "refine_w_search",
+            "reimitation_steps",
         ]  # fmt: skip
         for name in non_negative:
             if getattr(self, name) < 0:
@@ -177,7 +192,7 @@ class IterateConfig:
 
 # Steps and batches per profile, applied before --steps/--set: the paper's numbers need a GPU.
 PRESETS: dict[str, dict] = {
-    "tiny": dict(imitation_steps=30, world_model_steps=30, refine_steps=20,
+    "tiny": dict(imitation_steps=30, world_model_steps=30, refine_steps=20, reimitation_steps=30,
                  imitation_batch_size=16, world_model_batch_size=8, refine_batch_size=8,
                  refine_lr=1e-4, log_every=1, ckpt_every=10, eval_windows=256),
     "cpu": dict(imitation_steps=2000, world_model_steps=3000, refine_steps=500,
@@ -192,10 +207,21 @@ PRESETS: dict[str, dict] = {
 def apply_set(cfg: IterateConfig, items: list[str]) -> IterateConfig:
     """`--set field=value` (carrt/settings.py: the parser the study shares); errors are
     UsageErrors (one line, exit 2)."""
+    if any(item.partition("=")[0].strip() == "dirl" for item in items):
+        raise UsageError("--set dirl: use --dirl (it writes the refined policy into OUT/refined/, "
+                         "beside the imitated one)")  # fmt: skip
     try:
         return apply_sets(cfg, items, "IterateConfig in training/config.py", frozen=FROZEN)
     except UserError as exc:
         raise UsageError(str(exc)) from None
 
 
-FROZEN = ("episodes", "world_episodes", "out")  # given as --episodes etc., not --set
+FROZEN = ("episodes", "world_episodes", "out", "dirl")  # given as --episodes etc., not --set
+
+
+def dirl_fields() -> tuple[str, ...]:
+    """The settings only the world model, refinement and the research variants read: the fields
+    from world_model_steps to counterfactual_tracks, in their order above. A run without them
+    (not `dirl`) leaves them out of its report."""
+    names = [f.name for f in fields(IterateConfig)]
+    return tuple(names[names.index("world_model_steps") : names.index("counterfactual_tracks") + 1])

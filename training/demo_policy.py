@@ -104,15 +104,18 @@ def sloppy_world_refinement(
     """A sloppier person's demonstrations (σ 0.5 on every command, an error lasting τ 0.5 s)
     teach a world model what steering off the line does; the last network is refined in it
     from its own episodes' states (`carrt-train --world-episodes`, the study's refinement).
-    Returns the refined run."""
+    Returns the refined run (carrt-train --dirl's refined/)."""
     sloppy, refined = work / "sloppy", work / "refined"
     run([py, "-m", "training.sim_data", "demos", "--out", str(sloppy), "--tracks", SLOPPY_TRACKS,
          "--layouts", LAYOUTS, "--episodes", str(a.episodes), "--noise", "0.5",
          "--noise-tau", "0.5", "--jobs", str(a.jobs)], work / ".done-sloppy")  # fmt: skip
-    run(iterate(py, data, refined, a, "--world-episodes", str(sloppy), "--init", str(policy_dir),
+    # --dirl: refined/ is the refined run; reimitation_steps=0: the policy refinement starts
+    # from is the last network itself, not imitated again (as it was measured)
+    run(iterate(py, data, refined, a, "--dirl", "--world-episodes", str(sloppy),
+                "--init", str(policy_dir), "--set", "reimitation_steps=0",
                 "--set", "world_model_steps=3000", "--set", "refine_steps=300",
                 "--set", "refine_w_imitation=50"), refined / ".done")  # fmt: skip
-    return refined
+    return refined / "refined"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -200,21 +200,25 @@ def imitation_metrics(policy, dataset, device, *, limit=2048, batch_size=64) -> 
 def evaluate(policy, world_model, episodes, profile, device, *, limit: int = 2048,
              takeovers_as_collisions: bool = False):  # fmt: skip
     """(metrics, arrays) on the given (held-out) episodes, the world model's collision labels
-    as it was trained on them (takeovers_as_collisions); arrays feed figures.py."""
+    as it was trained on them (takeovers_as_collisions); arrays feed figures.py. Without a
+    world model (None: a run of imitation alone) the policy's metrics only, and no arrays."""
     from training.data import FrameStore, ImitationDataset, WindowDataset
 
     h, size = profile.horizon, profile.predict_size
     store = FrameStore(episodes)
-    windows = WindowDataset(
-        episodes, h, predict_size=size, takeovers_as_collisions=takeovers_as_collisions,
-        store=store,
-    )  # fmt: skip
     free = ImitationDataset(episodes, h, store=store)
     policy.to(device)
-    world_model.to(device)
-    arrays = collect_world_model(world_model, windows, device, limit=limit) if len(windows) else {}
     metrics = {"episodes": len(episodes), "frames": int(sum(ep.n for ep in episodes))}
-    metrics.update(world_model_metrics(arrays))
-    metrics.update(action_response(world_model, windows, device, limit=min(limit, 512)))
+    arrays: dict = {}
+    if world_model is not None:
+        windows = WindowDataset(
+            episodes, h, predict_size=size, takeovers_as_collisions=takeovers_as_collisions,
+            store=store,
+        )  # fmt: skip
+        world_model.to(device)
+        if len(windows):
+            arrays = collect_world_model(world_model, windows, device, limit=limit)
+        metrics.update(world_model_metrics(arrays))
+        metrics.update(action_response(world_model, windows, device, limit=min(limit, 512)))
     metrics.update(imitation_metrics(policy, free, device, limit=limit))
     return metrics, arrays

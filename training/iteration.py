@@ -1,20 +1,24 @@
-"""One DIRL iteration: data → imitation → world model → refinement → export → report.
+"""One training run: data → imitation (→ world model → refinement) → export → report.
 
     carrt-train --episodes episodes/ --out runs/iter1 --profile cpu
     carrt-train --episodes episodes/ --out runs/iter2 --init runs/iter1
-    carrt-train --episodes episodes/ --world-episodes sloppy/ --out runs/r --init runs/iter1
     torchrun --nproc_per_node 2 training/iterate.py …          # DistributedDataParallel
 
-This is the machinery of one `carrt-train` run (training/iterate.py runs the paper's whole loop
-from it; without --iterations it runs exactly one iteration, as below).
+This is the machinery of one run: training/iterate.py (`carrt-train`) runs one or two of them
+per iteration, and the paper's whole loop from them.
 
-Iteration 1 (no --init) learns the policy by imitation, then the world model, then refines the
-policy in the world model's imagination. A later iteration (--init runs/iterN-1) starts from the
-previous policy and world model, trains the world model on ALL the episodes given (old + new)
-and refines again; imitation does not run again (the paper's algorithm, DESIGN §2) unless
-`reimitate` is set: then the previous policy first learns by imitation on every labelled frame,
-the person's take-overs in the new episodes included. With --world-episodes the world model
-learns those episodes instead (imitation and refinement still read --episodes).
+A run without `dirl` (carrt-train's default) is imitation alone: from scratch, or with --init
+from the previous policy (and its input scaling) on every labelled frame given, the person's
+take-overs in the new episodes included (a take-over round). It builds, trains, saves and
+reports no world model.
+
+With `dirl` (carrt-train --dirl's second run, into OUT/refined/, and every run of
+research/variants/train.py) a run from scratch learns the policy by imitation, then the world
+model, then refines the policy in the world model's imagination. With --init it starts from the
+previous policy and world model (when that run has one), trains the world model on ALL the
+episodes given and refines; imitation does not run again (the paper's algorithm, DESIGN §2)
+unless `reimitate` is set. With --world-episodes the world model learns those episodes instead
+(imitation and refinement still read --episodes). Its policy.pt is the last stage's.
 
 Every number lives in IterateConfig (training/config.py); a profile name picks model sizes and
 a preset of steps and batch sizes (PRESETS), and `--set field=value` overrides any field.
@@ -77,7 +81,11 @@ def add_iteration_args(p: argparse.ArgumentParser) -> None:
         help="a torchvision resnet18 state_dict file: the backbones start from it (paper profile)",
     )  # fmt: skip
     p.add_argument("--profile", help=f"{' | '.join(PROFILES)} (default: --init's, else cpu)")
-    p.add_argument("--steps", type=int, help="optimizer steps of every stage")
+    p.add_argument(
+        "--steps",
+        type=int,
+        help="optimizer steps of every stage (and of a take-over round's imitation again)",
+    )
     p.add_argument("--no-uncertainty", action="store_true", help="w_unc = 0 (the -unc ablation)")
     p.add_argument("--seed", type=int)
     p.add_argument("--device", help="auto | cpu | cuda | cuda:N")
@@ -106,8 +114,9 @@ def config_from(a: argparse.Namespace) -> IterateConfig:
     cfg = dataclasses.replace(cfg, **PRESETS.get(profile, {}))
     if a.steps is not None:
         cfg = dataclasses.replace(
-            cfg, imitation_steps=a.steps, world_model_steps=a.steps, refine_steps=a.steps
-        )
+            cfg, imitation_steps=a.steps, world_model_steps=a.steps, refine_steps=a.steps,
+            reimitation_steps=a.steps,
+        )  # fmt: skip
     if getattr(a, "pretrained", None) is not None:
         if not Path(a.pretrained).is_file():
             raise UsageError(f"--pretrained {a.pretrained}: no such file")
@@ -235,13 +244,15 @@ def run(cfg: IterateConfig, dist: Dist | None = None, variants: Variants | None 
 
 
 def starting_point(cfg: IterateConfig, train_eps: list) -> Start:
+    """Imitation alone without `dirl`; with it, the paper's stages (imitation once)."""
+    dirl_stages = ["world_model", "refine"] if cfg.dirl else []
     if not cfg.init:
-        iteration = 1 if cfg.refine_steps > 0 else 0
-        return Start(compute_normalisation(train_eps), iteration, list(ck.STAGES))
+        iteration = 1 if cfg.dirl and cfg.refine_steps > 0 else 0
+        return Start(compute_normalisation(train_eps), iteration, ["imitation", *dirl_stages])
     policy_path, wm_path = _init_paths(cfg.init)
     try:
         init_ckpt = ck.load_checkpoint(policy_path)
-        init_wm = ck.load_checkpoint(wm_path) if wm_path.is_file() else None
+        init_wm = ck.load_checkpoint(wm_path) if cfg.dirl and wm_path.is_file() else None
     except ck.CheckpointError as exc:
         raise UsageError(f"--init {cfg.init}: {exc}") from None
     if init_ckpt["profile"] != cfg.profile:
@@ -249,7 +260,7 @@ def starting_point(cfg: IterateConfig, train_eps: list) -> Start:
     return Start(
         norm=Normalisation.from_dict(init_ckpt["normalisation"]),
         iteration=int(init_ckpt["iteration"]) + 1,
-        stages=(["imitation"] if cfg.reimitate else []) + ["world_model", "refine"],
+        stages=(["imitation"] if cfg.reimitate or not cfg.dirl else []) + dirl_stages,
         policy=init_ckpt["policy"],
         world_model=None if init_wm is None or cfg.world_model_fresh else init_wm["world_model"],
     )
@@ -261,11 +272,13 @@ def build_models(cfg: IterateConfig, start: Start):
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    policy, world_model = PolicyNet(cfg.profile_obj), WorldModel(cfg.profile_obj)
+    policy = PolicyNet(cfg.profile_obj)
+    world_model = WorldModel(cfg.profile_obj) if cfg.dirl else None  # imitation alone: none
     policy.set_normalisation(start.norm)
-    world_model.set_normalisation(start.norm)
+    if world_model is not None:
+        world_model.set_normalisation(start.norm)
     if cfg.pretrained:  # before the starts and checkpoints, which overwrite what they hold
-        for model in (policy, world_model):
+        for model in filter(None, (policy, world_model)):
             try:
                 model.backbone.load_pretrained(cfg.pretrained)
             except (ValueError, RuntimeError, OSError, pickle.UnpicklingError) as exc:
@@ -273,7 +286,7 @@ def build_models(cfg: IterateConfig, start: Start):
                 raise UserError(f"--pretrained: {first}") from None
     if start.policy is not None:
         policy.load_state_dict(start.policy)
-    if start.world_model is not None:
+    if start.world_model is not None and world_model is not None:
         world_model.load_state_dict(start.world_model)
     return policy, world_model
 
@@ -357,7 +370,8 @@ def train_stage(
 
 
 def save_final(cfg, common: dict, start: Start, results: dict, policy, world_model) -> None:
-    """policy.pt (what export reads) and world_model.pt (what the next iteration continues)."""
+    """policy.pt (what export reads) and, with a world model, world_model.pt (what the next
+    iteration continues)."""
     out = Path(cfg.out)
     stages = start.stages
     last = next((s for s in reversed(stages) if results[s].steps > 0), stages[-1])
@@ -365,6 +379,8 @@ def save_final(cfg, common: dict, start: Start, results: dict, policy, world_mod
     ck.save_checkpoint(
         out / "policy.pt", **{**final, "policy": policy.state_dict(), "world_model": None}
     )
+    if world_model is None:
+        return
     ck.save_checkpoint(
         out / "world_model.pt",
         **{**final, "policy": policy.state_dict(), "world_model": world_model.state_dict()},
@@ -374,20 +390,33 @@ def save_final(cfg, common: dict, start: Start, results: dict, policy, world_mod
 def _load_weights(c: dict, policy, world_model) -> None:
     if c["policy"]:
         policy.load_state_dict(c["policy"])
-    if c["world_model"] is not None:
+    if c["world_model"] is not None and world_model is not None:
         world_model.load_state_dict(c["world_model"])
 
 
 def main(
-    argv: list[str] | None = None, variants: Variants | None = None, prog: str = "carrt-train"
+    argv: list[str] | None = None,
+    variants: Variants | None = None,
+    prog: str = "carrt-train",
+    dirl: bool = False,
 ) -> int:
-    """One iteration from the command line; errors are one line (exit codes: module docstring)."""
-    return guarded(lambda: parse_args(argv, prog), variants)
+    """One run from the command line (`dirl`: with the world model and refinement, its policy.*
+    the refined one: research/variants/train.py's); errors are one line (exit codes: module
+    docstring). carrt-train itself is training/iterate.py."""
+    return guarded(lambda: dataclasses.replace(parse_args(argv, prog), dirl=dirl), variants)
 
 
 def guarded(make_config: Callable[[], IterateConfig], variants: Variants | None = None) -> int:
     """Run the iteration `make_config()` describes, turning what can go wrong into one line and
-    the exit status (the loop in iterate.py calls this for each of its iterations)."""
+    the exit status."""
+    return run_guarded(make_config, variants)[0]
+
+
+def run_guarded(
+    make_config: Callable[[], IterateConfig], variants: Variants | None = None
+) -> tuple[int, bool]:
+    """guarded()'s exit status, and whether the run got to its end (not when it stopped at
+    stop_after, failed or was interrupted): iterate.py runs each of its steps through this."""
     dist = None
     try:
         cfg = make_config()
@@ -399,28 +428,29 @@ def guarded(make_config: Callable[[], IterateConfig], variants: Variants | None 
         if dist.is_main:
             for line in summary.get("lines", []):
                 print(line)
-        return summary.get("exit_code", 0)
+        code = summary.get("exit_code", 0)
+        return code, code == 0
     except (UserError, ck.CheckpointError) as exc:
         if dist is None or dist.is_main:
             print(f"carrt-train: error: {exc}", file=sys.stderr)
-        return 2
+        return 2, False
     except StopRequested as exc:
         if dist is None or dist.is_main:
             print(f"carrt-train: stopped at {exc} (stop_after); run the same command to resume")
-        return 0
+        return 0, False
     except FloatingPointError as exc:
         print(
             f"carrt-train: training diverged: {exc}; the last checkpoint is intact", file=sys.stderr
         )
-        return 1
+        return 1, False
     except Interrupted as exc:
         if dist is None or dist.is_main:
             print(f"carrt-train: interrupted at {exc}; checkpoint saved, run the same command "
                   "to resume", file=sys.stderr)  # fmt: skip
-        return 130
+        return 130, False
     except KeyboardInterrupt:
         print("carrt-train: interrupted; run the same command to resume from the last checkpoint",
               file=sys.stderr)  # fmt: skip
-        return 130
+        return 130, False
     finally:
         shutdown_distributed()

@@ -81,7 +81,7 @@ def finish_run(
     figures: dict[str, str] = {}
     # the held-out windows, decoded once for the reveries figure and the research extras
     windows = None
-    if cfg.figures or extras:
+    if (cfg.figures and world_model is not None) or extras:
         windows = WindowDataset(
             eval_eps, profile.horizon, predict_size=profile.predict_size,
             takeovers_as_collisions=cfg.takeovers_as_collisions,
@@ -90,13 +90,14 @@ def finish_run(
         fig_dir = out / "figures"
         histories = {name: r.history for name, r in results.items()}
         loss_curves(histories, fig_dir / "loss_curves.png")
-        uncertainty_vs_error(arrays, fig_dir / "uncertainty_vs_error.png")
-        reveries(world_model, windows, device, fig_dir / "reveries.png")
-        figures = {
-            "Loss curves": "figures/loss_curves.png",
-            "Uncertainty against error (held-out)": "figures/uncertainty_vs_error.png",
-            "Reveries: real future, predicted, uncertainty": "figures/reveries.png",
-        }
+        figures = {"Loss curves": "figures/loss_curves.png"}
+        if world_model is not None:
+            uncertainty_vs_error(arrays, fig_dir / "uncertainty_vs_error.png")
+            reveries(world_model, windows, device, fig_dir / "reveries.png")
+            figures |= {
+                "Uncertainty against error (held-out)": "figures/uncertainty_vs_error.png",
+                "Reveries: real future, predicted, uncertainty": "figures/reveries.png",
+            }
 
     export_lines, export_info, exit_code = _export(cfg, out)
     sections: dict[str, tuple] = {}
@@ -167,18 +168,23 @@ def _world_data(world) -> dict:
 def render(cfg, r: dict, export_lines: list[str], extra_md: list[str] = ()) -> str:
     d, m = r["data"], r["metrics"]
     src = "held-out episodes" if m.get("held_out") else "TRAINING episodes (no held-out split)"
+    if cfg.dirl:
+        title = f"# carrt DIRL iteration {r['iteration']} — `{cfg.out}`"
+        unc = f", uncertainty term {'off (-unc ablation)' if cfg.no_uncertainty else 'on'}"
+    else:
+        title, unc = f"# carrt iteration {r['iteration']}: imitation — `{cfg.out}`", ""
+    labels = " (collisions for the world model)" if cfg.dirl and cfg.takeovers_as_collisions else ""
     md = [
-        f"# carrt DIRL iteration {r['iteration']} — `{cfg.out}`",
+        title,
         "",
         f"Profile `{cfg.profile}`, {r['world_size']} process(es) on {r['device']}, "
-        f"seed {cfg.seed}, init `{cfg.init or '—'}`, "
-        f"uncertainty term {'off (-unc ablation)' if cfg.no_uncertainty else 'on'}.",
+        f"seed {cfg.seed}, init `{cfg.init or '—'}`{unc}.",
         "",
         "## Data",
         "",
         f"- episodes: {d['episodes']} ({d['frames']} frames; {d['collision_frames']} frames "
         f"labelled collision, {d['takeover_frames']} in the 0.5 s before a take-over"
-        f"{' (collisions for the world model)' if cfg.takeovers_as_collisions else ''})",
+        f"{labels})",
         f"- split by placement: {len(d['train_episodes'])} train episodes "
         f"({d.get('train_placements', '?')} placements, {d['train_frames']} frames), "
         f"{len(d['held_out_episodes'])} held out ({d['held_out_frames']} frames) on "
@@ -198,7 +204,37 @@ def render(cfg, r: dict, export_lines: list[str], extra_md: list[str] = ()) -> s
         md.append(
             f"| {name} | {s['steps']} | {_fmt(s['samples_per_s'], 3)} | {_fmt(loss)} | {parts} |"
         )
-    md += [
+    if not cfg.dirl:
+        md += [
+            "",
+            f"## Held-out metrics ({src})",
+            "",
+            "| metric | value |",
+            "|---|---|",
+            f"| imitation L1 of μ vs a* ({m.get('imitation_windows', 0)} collision-free windows) "
+            f"| {_fmt(m.get('imitation_l1'))} |",
+            f"| … of the steering | {_fmt(m.get('imitation_l1_steering'))} |",
+            f"| … of the throttle | {_fmt(m.get('imitation_l1_throttle'))} |",
+            "",
+        ]
+    else:
+        md += _world_model_metrics(m, src)
+    md += list(extra_md)
+    if r["figures"]:
+        md += ["## Figures", ""]
+        md += [f"### {title}\n\n![{title}]({p})\n" for title, p in r["figures"].items()]
+    md += ["## Export", "", *[f"    {line}" for line in export_lines], ""]
+    md += ["## Config", "", "```json", json.dumps(_config(cfg), indent=2, default=str), "```"]
+    if not cfg.dirl:
+        md += ["", "The settings of the stages `carrt-train --dirl` adds are left out: this run "
+               "did not use them."]  # fmt: skip
+    md.append("")
+    return "\n".join(md)
+
+
+def _world_model_metrics(m: dict, src: str) -> list[str]:
+    """The held-out table of a run with a world model, beside the baselines that give it meaning."""
+    md = [
         "",
         f"## Held-out metrics ({src}: {m.get('windows', 0)} windows)",
         "",
@@ -239,13 +275,7 @@ def render(cfg, r: dict, export_lines: list[str], extra_md: list[str] = ()) -> s
             + " |"
         )
         md.append("")
-    md += list(extra_md)
-    if r["figures"]:
-        md += ["## Figures", ""]
-        md += [f"### {title}\n\n![{title}]({p})\n" for title, p in r["figures"].items()]
-    md += ["## Export", "", *[f"    {line}" for line in export_lines], ""]
-    md += ["## Config", "", "```json", json.dumps(_config(cfg), indent=2, default=str), "```", ""]
-    return "\n".join(md)
+    return md
 
 
 def _finite(x):
@@ -260,6 +290,40 @@ def _finite(x):
 
 
 def _config(cfg) -> dict:
+    """The run's settings; without `dirl`, less those only the world model and refinement read."""
     from dataclasses import asdict
 
-    return asdict(cfg)
+    from training.config import dirl_fields
+
+    config = asdict(cfg)
+    if not cfg.dirl:
+        for name in dirl_fields():
+            config.pop(name, None)
+    return config
+
+
+def add_section(out: Path, key: str, value, lines: list[str]) -> None:
+    """A finished run's report gains a section from a later step (what refinement changed, the
+    driven comparison): `value` under `key` in metrics.json, `lines` (a `## ` heading first) in
+    report.md before its figures and export. A section with the same heading is replaced, so a
+    step run again leaves one."""
+    metrics = out / "metrics.json"
+    record = json.loads(metrics.read_text())
+    record[key] = _finite(value)
+    metrics.write_text(json.dumps(record, indent=2, default=str) + "\n")
+    report = out / "report.md"
+    text = report.read_text()
+    heading = lines[0]
+    body = "\n".join(lines).rstrip("\n") + "\n\n"
+    if f"\n{heading}\n" in text:  # replace: up to the next heading of the same level
+        before, rest = text.split(f"\n{heading}\n", 1)
+        after = rest.split("\n## ", 1)
+        tail = "## " + after[1] if len(after) > 1 else ""
+        report.write_text(before + "\n" + body + tail)
+        return
+    for anchor in ("\n## Figures\n", "\n## Export\n"):
+        if anchor in text:
+            before, after = text.split(anchor, 1)
+            report.write_text(before + "\n" + body + anchor.lstrip("\n") + after)
+            return
+    report.write_text(text.rstrip("\n") + "\n\n" + body)

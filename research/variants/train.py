@@ -3,7 +3,9 @@
     python research/variants/train.py --episodes data/ --out runs/r --init runs/iter1 \\
         --set refine_search=true --set counterfactual_starts=6
 
-Same flags, same stages, same files as `carrt-train` (training/iteration.py); on top of them:
+Same flags as `carrt-train`, and one run is one DIRL iteration in place (training/iteration.py
+with `dirl`: imitation → world model → refinement, OUT/policy.* the last stage's policy, as the
+study's chains read it); on top of them:
 
 - refinement by search (`refine_search`, research/variants/refine_search.py) or from the drives'
   recorded outcomes (`refine_outcomes`, research/variants/refine_outcomes.py) in place of the
@@ -92,7 +94,10 @@ VARIANTS = iteration.Variants(refine=refine, report=[counterfactual_section, dri
 
 
 def main(argv: list[str] | None = None) -> int:
-    return iteration.main(argv, VARIANTS, prog="research/variants/train.py")
+    """One run, the world model and refinement on (`dirl`: their steps as the study sets them,
+    its policy.* the last stage's), as every study command ran before carrt-train made them
+    opt-in (--dirl, into OUT/refined/)."""
+    return iteration.main(argv, VARIANTS, prog="research/variants/train.py", dirl=True)
 
 
 if __name__ == "__main__":
