@@ -1,5 +1,6 @@
-"""carrt-train: one iteration or the paper's loop; imitation and take-over rounds, and the world
-model and refinement only when asked (--dirl), beside them.
+"""carrt-train: imitation and take-over rounds, one iteration or the loop (--dirl: + refinement).
+
+The world model and refinement in it run only when asked (--dirl), beside the imitated policy.
 
     carrt-train --episodes demos/ --out runs/iter1                               # one iteration
     carrt-train --episodes demos/ drives1/ --out runs/iter2 --init runs/iter1    # a take-over round
@@ -96,7 +97,7 @@ DIRL_STATUS = (
 def parse(argv: list[str] | None) -> tuple[argparse.Namespace, IterateConfig]:
     p = _Parser(
         prog="carrt-train", description=__doc__.split("\n")[0],
-        epilog="examples:\n" + __doc__.split("\n\n")[1], formatter_class=_Help,
+        epilog="examples:\n" + __doc__.split("\n\n")[2], formatter_class=_Help,
     )  # fmt: skip
     add_iteration_args(p)
     p.add_argument("--dirl", action="store_true",
