@@ -10,7 +10,9 @@ Ratio printed: the load at 50 Hz against the 16 MHz CPU.
 Side by side: the same measurements of the firmware as it was before the RC receiver
 (BASELINE_COMMIT, built from that commit's sources with the same toolchain), with its flash and
 RAM use, so what the receiver costs is measured, not guessed. With a receiver's three channels
-running, D8 is high while their edges are handed to the core; that is reported too.
+running, D8 is high while their edges, and the time for the pulses that wait for a quiet line,
+are handed to the core (not the check each loop() pass makes whether anything is due); that is
+reported too.
 """
 
 from __future__ import annotations
@@ -94,13 +96,14 @@ def command_frame_cost(emu: AvrEmulator, n_frames: int = 400) -> dict:
 
 
 def receiver_edge_cost(emu: AvrEmulator, seconds: float = 2.0) -> dict:
-    """Cycles spent handing receiver edges to the core (D8), three channels at 50 Hz."""
+    """Cycles spent handing receiver edges and the time to the core (D8), three channels at
+    50 Hz: six edges and three pulses that count per 20 ms frame."""
     emu.rc_receiver((1500, 1500, 1000))
     time.sleep(0.3)
     emu.busy()
     time.sleep(seconds)
     _, _, rc = emu.busy()
-    per_edge = rc.total / max(rc.count, 1)  # a pass usually hands over one edge
+    per_edge = rc.total / max(rc.count, 1)  # a pass usually hands over one edge or one pulse
     return {
         "rc_cycles_per_edge_pass": round(per_edge, 1),
         "rc_load_at_50hz": rc.total / (seconds * F_CPU),

@@ -9,7 +9,11 @@ that obeys it (the moment it reaches the servo or the ESC):
   width; with the host running, and with the host's process stopped (SIGSTOP) beforehand;
 - e-stop: the switch channel to its e-stop position → neutral on the pins;
 - loss: the transmitter goes silent → FAILSAFE (the ARMED LED goes dark), measured from the end
-  of the last pulse; the rule says after RC_LOSS_MS.
+  of the last pulse; the rule says after RC_LOSS_MS;
+- noise bursts (`noise_burst`): glitches on one receiver line or all three around the falling
+  edge of one of its pulses, with the receiver driving and with the host driving; every output
+  pulse after it must be the command on the pins or neutral (never a third width), and how
+  often the board went neutral is counted.
 
 The host is this module run with ``--host PORT`` (`host()` below), in its own process so that
 the trials can freeze it. tests/test_avr_receiver.py runs the same
@@ -164,6 +168,132 @@ def signal_loss(rig: Rig, rng: random.Random) -> Trial:
     return Trial(latency)
 
 
+# Noise bursts: glitches on the receiver's lines (AvrEmulator.rc_burst) on top of its pulses.
+# "sparse": edges 20-90 us apart, the bursts a tester saw move the servo and the ESC with the
+# firmware of before; "dense": a few us apart, faster than the pin-change interrupt comes
+# (edges merge); "storm": as dense, for 8-12 ms on all three lines, more than the board's edge
+# queue holds. Each: (shortest, longest gap in us, fewest, most edges).
+BURSTS = {
+    "sparse": (20.0, 90.0, 10, 60),
+    "dense": (2.0, 6.0, 60, 300),
+    "storm": (2.0, 6.0, 2000, 3000),
+}
+ALL_LINES = (STEERING, THROTTLE, SWITCH)
+LINE_NAMES = ("steering", "throttle", "switch")
+BURST_LINES = ((STEERING,), (THROTTLE,), (SWITCH,), ALL_LINES)
+TAKE_OVER_WIDTHS = {STEERING: 1700, THROTTLE: 1430, SWITCH: 1000}  # reverse: no stall rule
+NEUTRAL_US = 1500.0
+BURST_TOLERANCE_US = 3.0  # the passthrough's 2 us (steady) plus one timer count
+
+
+@dataclass
+class BurstTrial:
+    lines: tuple[int, ...]
+    gaps: str  # a key of BURSTS
+    receiver_drives: bool  # the take-over's widths on the pins, else the host's command
+    wrong_us: float  # the largest output pulse off both the command and neutral (0: none)
+    neutral: bool  # the outputs went neutral (FAILSAFE: the receiver's signal was lost)
+
+
+def _host_widths() -> tuple[float, float]:
+    steer, throttle = POLICY  # the bench host's command, on the default config's endpoints
+    return 1500.0 + 500.0 * steer, 1500.0 + 500.0 * throttle
+
+
+def _drive_by(rig: Rig, receiver: bool) -> tuple[float, float]:
+    """Armed, with the receiver's take-over or the host's command on the pins: those widths."""
+    emu = rig.emu
+    widths = TAKE_OVER_WIDTHS if receiver else RUN_WIDTHS
+    for ch, width in widths.items():
+        emu.rc_train(ch, width)
+    time.sleep(0.05)  # the new widths read
+    if not receiver:
+        rig.resume_auto()  # the AUTO edge hands the wheels back to the host
+    expect = (float(widths[STEERING]), float(widths[THROTTLE])) if receiver else _host_widths()
+    deadline = time.monotonic() + 3.0
+    while True:  # six output frames at the expected widths (the steadied passthrough)
+        time.sleep(0.13)
+        steer, throttle = emu.pulses_us()
+        if max(abs(steer - expect[0]), abs(throttle - expect[1])) <= BURST_TOLERANCE_US:
+            return expect
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the outputs did not settle at {expect}: {steer}, {throttle}")
+
+
+def noise_burst(
+    rig: Rig, rng: random.Random, *, lines: tuple[int, ...], gaps: str, receiver: bool
+) -> BurstTrial:
+    """One burst (on each of `lines` at once) at a random phase of the receiver's frame while
+    the receiver or the host drives; every output pulse from then until 100 ms after it is
+    checked against the command on the pins and neutral. A burst that made the board give up
+    the receiver's signal (FAILSAFE) is followed by a re-arm."""
+    emu = rig.emu
+    expect = _drive_by(rig, receiver)
+    gap_min, gap_max, edges_min, edges_max = BURSTS[gaps]
+    emu.take_events()
+    # around the falling edge of one of the receiver's pulses (the edge whose loss would
+    # mis-time a width), starting up to a whole burst before it
+    anchor = rng.choice((STEERING, THROTTLE, SWITCH))
+    edges = rng.randint(edges_min, edges_max)
+    before = rng.uniform(0.0, edges * (gap_min + gap_max) / 2)
+    for ch in lines:
+        emu.rc_burst(
+            ch, edges, gap_min, gap_max, rng.randrange(1 << 30),
+            rng.uniform(-before, 0.0) if len(lines) > 1 else -before, after_fall_of=anchor,
+        )  # fmt: skip
+    time.sleep(0.15)
+    events = emu.take_events()
+    ends = [e for e in events if e.kind == "E"]
+    if len(ends) != len(lines):
+        raise RuntimeError(f"a burst did not finish: {ends}")
+    wrong = 0.0
+    neutral = False
+    for e in events:
+        if e.kind in "AB":
+            width = e.value / 16
+            want = expect[0] if e.kind == "A" else expect[1]
+            off = min(abs(width - want), abs(width - NEUTRAL_US))
+            if off > BURST_TOLERANCE_US:
+                wrong = max(wrong, off)
+            neutral |= abs(width - NEUTRAL_US) <= BURST_TOLERANCE_US
+    if any(e.kind == "L" and e.value == 0 for e in events) or neutral:
+        for ch, width in RUN_WIDTHS.items():
+            emu.rc_train(ch, width)
+        time.sleep(0.2)  # five good frames: the receiver counts again
+        rig.tell("rearm")
+        neutral = True
+    return BurstTrial(lines, gaps, receiver, wrong, neutral)
+
+
+def burst_trials(rig: Rig, rng: random.Random, per_case: int) -> list[BurstTrial]:
+    """per_case sparse and dense bursts on each line and on all three at once, and per_case
+    storms on all three, with the receiver driving and with the host driving."""
+    cases = [(gaps, lines) for gaps in ("sparse", "dense") for lines in BURST_LINES]
+    cases.append(("storm", ALL_LINES))
+    return [
+        noise_burst(rig, rng, lines=lines, gaps=gaps, receiver=receiver)
+        for receiver in (True, False)
+        for gaps, lines in cases
+        for _ in range(per_case)
+    ]
+
+
+def burst_summary(runs: list[BurstTrial]) -> dict:
+    """Per kind of burst, with the receiver driving ("rx") and the host ("host"): how many,
+    how many put a wrong width on an output, how many went neutral (FAILSAFE)."""
+    out: dict = {}
+    for t in runs:
+        key = f"{'rx' if t.receiver_drives else 'host'}_{t.gaps}_" + (
+            "all" if len(t.lines) > 1 else LINE_NAMES[t.lines[0]]
+        )
+        row = out.setdefault(key, {"bursts": 0, "wrong": 0, "neutral": 0, "wrong_us_max": 0.0})
+        row["bursts"] += 1
+        row["wrong"] += t.wrong_us > 0
+        row["neutral"] += t.neutral
+        row["wrong_us_max"] = max(row["wrong_us_max"], round(t.wrong_us, 3))
+    return out
+
+
 def trials(n: int = 100, seed: int = 0) -> dict[str, list[Trial]]:
     rng = random.Random(seed)
     with AvrEmulator() as emu:
@@ -196,6 +326,16 @@ def summary(results: dict[str, list[Trial]]) -> dict:
     return out
 
 
+def noise_trials(per_case: int = 10, seed: int = 1, elf=None) -> list[BurstTrial]:
+    """burst_trials on a fresh emulated board (elf: another firmware, e.g. an older one)."""
+    with AvrEmulator(elf) as emu:
+        rig = Rig(emu)
+        try:
+            return burst_trials(rig, random.Random(seed), per_case)
+        finally:
+            rig.close()
+
+
 def run() -> dict:
     result = summary(trials())
     for name, s in result.items():
@@ -203,7 +343,13 @@ def run() -> dict:
             f"   {name}: {s['trials']} trials, {s['latency_ms_min']:.2f} / "
             f"{s['latency_ms_median']:.2f} / {s['latency_ms_max']:.2f} ms (min / median / max)"
         )
-    return result
+    bursts = burst_summary(noise_trials())
+    for name, row in bursts.items():
+        print(
+            f"   noise {name}: {row['bursts']} bursts, a wrong width on the outputs in "
+            f"{row['wrong']}, neutral (FAILSAFE) in {row['neutral']}"
+        )
+    return {**result, "noise_bursts": bursts}
 
 
 POLICY = (0.2, 0.1)

@@ -87,7 +87,8 @@ class Event:
 
     kind: "L" ARMED LED level (value 0/1), "F" a host frame's 0x00 delimiter entered the UART,
     "A"/"B" steering/ESC pulse width changed (value in cycles), "R" emulated reset, "W" a
-    receiver channel's (value) first pulse with a new width ended, "O" its train stopped.
+    receiver channel's (value) first pulse with a new width ended, "O" its train stopped, "N"/"E"
+    the first / last edge of a burst on that channel (rc_burst).
     """
 
     kind: str
@@ -248,6 +249,29 @@ class AvrEmulator:
     def rc_noise(self, channel: int, mean_gap_us: float, seed: int) -> None:
         """Random edges on a receiver pin, 1 .. 2 * mean_gap_us apart."""
         self.ask(f"rc {int(channel)} noise {mean_gap_us:.3f} {int(seed)}")
+
+    def rc_burst(
+        self,
+        channel: int,
+        edges: int,
+        gap_min_us: float,
+        gap_max_us: float,
+        seed: int,
+        delay_us: float = 0.0,
+        *,
+        after_fall_of: int | None = None,
+    ) -> None:
+        """Glitches on a receiver pin on top of whatever drives it (a train, noise, the idle
+        level): delay_us from now, or from the next falling edge of the train on channel
+        `after_fall_of` (then delay_us may be negative: a burst around that edge), the line
+        flips `edges` times (rounded up to even: it ends at the level it would have had),
+        gap_min_us .. gap_max_us apart; N and E events (value: channel) at its first and last
+        edge."""
+        anchor = "" if after_fall_of is None else f" {int(after_fall_of)}"
+        self.ask(
+            f"rc {int(channel)} burst {int(edges)} {gap_min_us:.3f} {gap_max_us:.3f} "
+            f"{int(seed)} {delay_us:.3f}{anchor}"
+        )
 
     def reset(self) -> None:
         """Press the reset button: RAM and registers start over, EEPROM is kept."""

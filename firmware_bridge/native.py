@@ -43,6 +43,7 @@ TX_BUFFER = 8192  # the harness's serial TX capacity (FWH_TX_CAPACITY)
 MAX_ENCODED_FRAME = 66  # FW_FRAME_MAX_ENCODED: 64 decoded bytes -> 65 COBS bytes + 0x00
 RC_STEERING, RC_THROTTLE, RC_SWITCH = 0, 1, 2  # receiver channels (FW_RC_* in fw_core.h)
 RC_TICKS_PER_US = 2  # Timer1's count: 0.5 us
+RC_SETTLE_US = 500  # FW_RC_SETTLE_US: a pulse counts once its line has been quiet this long
 REBUILD_HINT = "reinstall carrt (pip install .) or, in a checkout, run make"
 
 
@@ -138,11 +139,17 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
         "fwh_crc32c": (c.c_uint32, [c.c_char_p, c.c_size_t]),
         "fwh_rc_size": (c.c_size_t, []),
         "fw_rc_init": (None, [c.c_void_p]),
-        "fw_rc_edge": (None, [c.c_void_p, c.c_uint8, c.c_uint32, c.c_uint32]),
+        "fw_rc_edge": (c.c_uint8, [c.c_void_p, c.c_uint8, c.c_uint32, c.c_uint32]),
+        "fw_rc_settle": (c.c_uint8, [c.c_void_p, c.c_uint32]),
+        "fw_rc_restart": (None, [c.c_void_p]),
         "fw_rc_poll": (None, [c.c_void_p, c.c_uint32]),
         "fw_rc_valid": (c.c_uint8, [c.c_void_p]),
         "fw_rc_width_us": (c.c_uint16, [c.c_void_p]),
         "fwh_rc_edge": (None, [c.c_void_p, c.c_uint8, c.c_uint8, c.c_uint32, c.c_uint32]),
+        "fwh_rc_settle": (None, [c.c_void_p, c.c_uint32, c.c_uint32]),
+        "fwh_rc_settle_due": (c.c_uint8, [c.c_void_p, c.c_uint32]),
+        "fwh_rc_overflow": (None, [c.c_void_p, c.c_uint8, c.c_uint32]),
+        "fwh_rc_settle_us": (c.c_uint32, []),
         "fwh_rc_drives": (c.c_uint8, [c.c_void_p]),
         "fwh_rc_width_us": (c.c_uint16, [c.c_void_p, c.c_uint8]),
         "fwh_pwm_syncs": (c.c_uint32, [c.c_void_p]),
@@ -232,6 +239,20 @@ class FirmwareCore:
         self._lib.fwh_rc_edge(
             self._h, int(channel), 1 if level else 0, int(ticks) & 0xFFFFFFFF, _ms(now_ms)
         )
+
+    def rc_settle(self, ticks: int, now_ms: int) -> None:
+        """The receiver's clock (Timer1's count, every edge before it handed over): a pulse
+        counts once its line has been quiet RC_SETTLE_US, as a board's loop() pass finds."""
+        self._lib.fwh_rc_settle(self._h, int(ticks) & 0xFFFFFFFF, _ms(now_ms))
+
+    def rc_settle_due(self, ticks: int) -> bool:
+        """Would rc_settle count a receiver pulse at this time?"""
+        return bool(self._lib.fwh_rc_settle_due(self._h, int(ticks) & 0xFFFFFFFF))
+
+    def rc_overflow(self, channels: int, now_ms: int) -> None:
+        """Edges of these receiver channels (bit 1 << RC_*) were lost, as when the board's edge
+        queue is full: they have no valid signal until a new run of good pulses."""
+        self._lib.fwh_rc_overflow(self._h, int(channels) & 0xFF, _ms(now_ms))
 
     @property
     def rc_drives(self) -> bool:

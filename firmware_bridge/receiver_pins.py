@@ -34,17 +34,17 @@ class ReceiverPins:
         self.widths = None
 
     def advance(self, now_us: int) -> None:
-        """Hand the core every edge up to now_us, in order."""
+        """Hand the core every edge up to now_us, in order, then the time."""
         while True:
             if not self._edges:
                 if self.widths is None:
                     self._next_frame_us = None
-                    return
+                    break
                 if self._next_frame_us is None:
                     self._next_frame_us = now_us
                 start = self._next_frame_us
                 if start > now_us:
-                    return
+                    break
                 for ch in range(RC_SWITCH + 1):
                     rise = start + SLOT_US[ch]
                     self._edges += [(rise, ch, 1), (rise + self.widths[ch], ch, 0)]
@@ -52,6 +52,9 @@ class ReceiverPins:
                 self._next_frame_us = start + FRAME_US
             t, ch, level = self._edges[0]
             if t > now_us:
-                return
+                break
             self._edges.pop(0)
             self.core.rc_edge(ch, level, t * RC_TICKS_PER_US, t // 1000)
+        # every edge up to now handed over: as a board's loop() pass, the pulses that have
+        # been quiet long enough count
+        self.core.rc_settle(now_us * RC_TICKS_PER_US, now_us // 1000)

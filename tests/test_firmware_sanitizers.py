@@ -154,6 +154,12 @@ def drive(seed: int = 1, rounds: int = 2000) -> None:
                         core.rc_edge(ch, 0, (rise + width) * 2, (rise + width) // 1000)
                 if receiver and rng.random() < 0.05:
                     core.rc_edge(rng.randrange(4), rng.randint(0, 1), rng.getrandbits(32), now)
+                if receiver and rng.random() < 0.5:  # the time, now and then a wild one
+                    ticks = now * 2000 if rng.random() < 0.9 else rng.getrandbits(32)
+                    core.rc_settle_due(ticks)
+                    core.rc_settle(ticks, now)
+                if receiver and rng.random() < 0.01:  # the board's edge queue overflowed
+                    core.rc_overflow(rng.getrandbits(8), now)
                 if step > arm_at and rng.random() < 0.3:
                     encoder += rng.randint(-3, 5)
                     core.set_encoder(encoder)

@@ -1,6 +1,7 @@
 """The RC receiver's pulse decoder in the firmware's C core, run on the host
-with a fake clock: ms-exact boundaries, widths exact to the microsecond, the 32-bit wrap, and a
-fuzz of random edge trains against a reference model of the rule fw_rc.h states."""
+with a fake clock: ms-exact boundaries, widths exact to the microsecond, the settle time, a
+restart after lost edges, the 32-bit wrap, and a fuzz of random edge trains against a reference
+model of the rule fw_rc.h states."""
 
 from __future__ import annotations
 
@@ -9,10 +10,11 @@ import ctypes
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from firmware_bridge.native import load_library
+from firmware_bridge.native import RC_SETTLE_US, load_library
 
 LIB = load_library()
 TICKS_PER_US, MIN_W, MAX_W, MIN_P, MAX_P, MIN_RUN, LOSS_MS = 2, 800, 2200, 8000, 30000, 5, 100
+SETTLE = RC_SETTLE_US
 
 
 class Channel:
@@ -26,9 +28,15 @@ class Channel:
             self.mem, level, (t_us * TICKS_PER_US) & 0xFFFFFFFF, (t_us // 1000) & 0xFFFFFFFF
         )
 
+    def settle(self, t_us: int) -> bool:
+        """The time, every edge before it handed over: True when a pulse counted."""
+        return bool(LIB.fw_rc_settle(self.mem, (t_us * TICKS_PER_US) & 0xFFFFFFFF))
+
     def pulse(self, start_us: int, width_us: int) -> None:
+        """A pulse, and the line quiet for the settle time after it."""
         self.edge(1, start_us)
         self.edge(0, start_us + width_us)
+        self.settle(start_us + width_us + SETTLE)
 
     def poll(self, now_ms: int) -> None:
         LIB.fw_rc_poll(self.mem, now_ms & 0xFFFFFFFF)
@@ -119,6 +127,69 @@ def test_signal_loss_after_exactly_the_loss_time():
     assert not ch.valid and ch.width == 0
 
 
+def test_the_settle_time_is_the_cores_own():
+    assert LIB.fwh_rc_settle_us() == RC_SETTLE_US
+
+
+def test_a_pulse_counts_once_its_line_has_been_quiet_for_the_settle_time():
+    ch = Channel()
+    for k in range(6):
+        ch.pulse(k * 20_000, 1_500)
+    assert ch.valid and ch.width == 1_500
+    ch.edge(1, 6 * 20_000)
+    ch.edge(0, 6 * 20_000 + 1_800)
+    assert not ch.settle(6 * 20_000 + 1_800 + SETTLE - 1) and ch.width == 1_500
+    assert ch.settle(6 * 20_000 + 1_800 + SETTLE) and ch.width == 1_800
+    assert not ch.settle(6 * 20_000 + 1_800 + SETTLE + 1)  # once
+    # the next rising edge counts a pulse that settled before it, without a settle call
+    ch.edge(1, 7 * 20_000)
+    ch.edge(0, 7 * 20_000 + 1_200)
+    ch.edge(1, 8 * 20_000)
+    assert ch.width == 1_200
+
+
+def test_a_pulse_that_more_edges_follow_within_the_settle_time_is_a_bad_one():
+    ch = Channel()
+    for k in range(6):
+        ch.pulse(k * 20_000, 1_500)
+    for i, quiet in enumerate((3, 90, SETTLE - 1)):  # a glitch right after the pulse's end
+        start = (6 + i) * 20_000
+        ch.edge(1, start)
+        ch.edge(0, start + 1_100)
+        ch.edge(1, start + 1_100 + quiet)
+        ch.edge(0, start + 1_100 + quiet + 20)
+        assert not ch.settle(start + 1_100 + quiet + 20 + SETTLE)
+        assert ch.valid and ch.width == 1_500, quiet
+    ch = Channel()  # before the channel counts, such a pulse starts the run again
+    for k in range(4):
+        ch.pulse(k * 20_000, 1_500)
+    ch.edge(1, 4 * 20_000)
+    ch.edge(0, 4 * 20_000 + 1_500)
+    ch.edge(1, 4 * 20_000 + 1_600)
+    ch.edge(0, 4 * 20_000 + 1_620)
+    for k in range(5, 9):  # the glitch's rise gives the first of them a period
+        ch.pulse(k * 20_000, 1_500)
+        assert not ch.valid
+    ch.pulse(9 * 20_000, 1_500)
+    assert ch.valid
+
+
+def test_a_restart_after_lost_edges_needs_a_whole_new_run():
+    ch = Channel()
+    for k in range(6):
+        ch.pulse(k * 20_000, 1_500)
+    ch.edge(1, 6 * 20_000)
+    LIB.fw_rc_restart(ch.mem)  # the falling edge of this pulse was lost
+    assert not ch.valid and ch.width == 0
+    ch.edge(0, 6 * 20_000 + 1_700)  # the next edge: no rising edge known, nothing to time
+    assert not ch.settle(6 * 20_000 + 1_700 + SETTLE)
+    for k in range(7, 12):  # the first has no period; four more make four of five
+        ch.pulse(k * 20_000, 1_500)
+        assert not ch.valid, k
+    ch.pulse(12 * 20_000, 1_500)
+    assert ch.valid and ch.width == 1_500
+
+
 def test_the_counters_may_wrap():
     ch = Channel()
     start = (1 << 31) - 50_000  # in ticks this crosses 2^32 a few pulses in
@@ -127,41 +198,54 @@ def test_the_counters_may_wrap():
     assert ch.valid and ch.width == 1_200
 
 
-def reference(edges: list[tuple[int, int]]) -> list[tuple[bool, int]]:
-    """The rule of fw_rc.h, in Python: (valid, width) after each edge."""
+def reference(events: list[tuple[int, int]]) -> list[tuple[bool, int]]:
+    """The rule of fw_rc.h, in Python: (valid, width) after each event, an event a rising (1)
+    or falling (0) edge or the time told (2)."""
     out, high, have_rise, period_ok, rise, run, width = [], False, False, False, 0, 0, 0
-    for level, t in edges:
+    settling, fall = None, 0
+    for kind, t in events:
         ticks = t * TICKS_PER_US
-        if level:
+        settled = settling is not None and ticks - fall >= SETTLE * TICKS_PER_US
+        if settled and kind != 0:  # the time told, or the next rising edge
+            width, run, settling = settling, min(run + 1, MIN_RUN), None
+        if kind == 1:
+            if settling is not None:  # more edges within the settle time: a bad pulse
+                settling = None
+                if run < MIN_RUN:
+                    run = 0
             period = ticks - rise
             period_ok = have_rise and MIN_P * TICKS_PER_US <= period <= MAX_P * TICKS_PER_US
             if have_rise and not period_ok and run < MIN_RUN:
                 run = 0
             rise, have_rise, high = ticks, True, True
-        elif high:
+        elif kind == 0 and high:
             high = False
             w = ticks - rise
             if not MIN_W * TICKS_PER_US <= w <= MAX_W * TICKS_PER_US:
                 if run < MIN_RUN:
                     run = 0
             elif period_ok:
-                width, run = w // TICKS_PER_US, min(run + 1, MIN_RUN)
+                settling, fall = w // TICKS_PER_US, ticks
         valid = run >= MIN_RUN
         out.append((valid, width if valid else 0))
     return out
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 1), st.integers(1, 40_000)), min_size=1, max_size=80))
+@given(st.lists(st.tuples(st.integers(0, 2), st.integers(1, 40_000)), min_size=1, max_size=80))
 def test_random_edge_trains_decode_as_the_rule_says(steps):
-    """Random levels and gaps (1 us to 40 ms; repeats of a level are glitches): the C decoder
-    and the reference agree after every edge, and a valid width is always in range."""
-    edges, t = [], 0
-    for level, gap in steps:
+    """Random levels and gaps (1 us to 40 ms; repeats of a level are glitches) with the time
+    told now and then: the C decoder and the reference agree after every event, and a valid
+    width is always in range."""
+    events, t = [], 0
+    for kind, gap in steps:
         t += gap
-        edges.append((level, t))
+        events.append((kind, t))
     ch = Channel()
-    for (level, t_us), expected in zip(edges, reference(edges), strict=True):
-        ch.edge(level, t_us)
+    for (kind, t_us), expected in zip(events, reference(events), strict=True):
+        if kind == 2:
+            ch.settle(t_us)
+        else:
+            ch.edge(kind, t_us)
         assert (ch.valid, ch.width) == expected
         assert not ch.valid or MIN_W <= ch.width <= MAX_W

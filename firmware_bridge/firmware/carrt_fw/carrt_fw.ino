@@ -14,7 +14,11 @@
 // The RC receiver (optional; used when the car's config names it as the person's controls):
 // steering, throttle and a switch channel on D4, D5, D6, read by the pin-change interrupt, which
 // only stamps each edge with Timer1's 0.5 us count (extended to 32 bits by its overflow) into a
-// queue; loop() hands the edges to the core, which decodes and rules on them. When the core asks
+// queue; loop() hands the edges to the core, which decodes and rules on them, and then the time
+// (a pulse counts once its line has been quiet for a while). An edge that finds the queue full
+// is never stamped later instead: the interrupt turns itself off, and once loop() has handed
+// over the queued edges it tells the core that edges were lost (all three channels must then
+// count again from scratch) and turns the interrupt back on. When the core asks
 // for a safety change to reach the pins at once (pwm_sync), the shim starts the next 20 ms frame
 // as soon as the pulses on the pins have ended instead of waiting out the period.
 //
@@ -52,7 +56,13 @@
 #define RC_THROTTLE_PIN 5  // PD5 (PCINT21): receiver channel 2, throttle
 #define RC_SWITCH_PIN 6    // PD6 (PCINT22): receiver switch channel (e-stop)
 #define RC_PIN_MASK (_BV(PIND4) | _BV(PIND5) | _BV(PIND6))
-#define RC_QUEUE 16        // edges between two loop() passes (6 per 20 ms frame in normal use)
+// Edges queued for loop(): 6 per 20 ms frame in normal use. Noise comes faster than loop()
+// hands edges to the core (a pass that handles a COMMAND frame takes 0.6 ms, an edge about
+// 20 us and the interrupt that queues it 9 us), so the queue holds the backlog of a burst:
+// 128 (5 bytes each) hold bursts of edges 20-90 us apart on all three lines at once, or a
+// millisecond of edges as fast as the interrupt comes; more, and the edges are rejected (see
+// the interrupt). A power of two: the index wraps with a mask.
+#define RC_QUEUE 128
 #define SERIAL_BAUD 250000 // 0 % divisor error at 16 MHz
 #define RX_CHUNK 64        // bytes handled per loop() so tick() is never starved
 
@@ -69,6 +79,8 @@
 #define EEPROM_CONFIG_ADDR 8
 #define EEPROM_BYTES 64
 static_assert(EEPROM_CONFIG_ADDR + FW_STORAGE_SIZE <= EEPROM_BYTES, "config blob too large");
+static_assert((RC_QUEUE & (RC_QUEUE - 1)) == 0 && RC_QUEUE <= 128, "RC_QUEUE: a power of two");
+static_assert(RC_PIN_MASK == 0x70, "a queued edge keeps the pins in bits 4-6, the changes in 0-2");
 
 static volatile int32_t encoder_ticks = 0;
 static fw_core_t core;
@@ -143,15 +155,15 @@ static int16_t uart_read() {
 
 typedef struct {
   uint32_t ticks;
-  uint8_t pins;     // PIND & RC_PIN_MASK after the edge
-  uint8_t changed;  // which receiver pins changed since the previous entry
+  uint8_t pins;  // bits 4-6: PIND & RC_PIN_MASK after the edge; bits 0-2: which of them changed
 } rc_edge_t;
 
 static volatile uint32_t timer1_base = 0;  // Timer1 counts before this frame (0.5 us each)
 static volatile rc_edge_t rc_queue[RC_QUEUE];
 static volatile uint8_t rc_head = 0;
 static volatile uint8_t rc_tail = 0;
-static volatile uint8_t rc_pins = 0;
+static volatile uint8_t rc_pins = 0;  // the pins' levels as last queued
+static volatile uint8_t rc_lost = 0;  // the queue was full: edges lost, the interrupt off
 static volatile uint8_t sync_pending = 0;
 
 // Timer1's count extended to 32 bits; call with interrupts off. The frame's end (TOV1, at TOP)
@@ -172,18 +184,26 @@ static uint32_t timer1_ticks() {
   return timer1_base + count;
 }
 
+// An edge of ours is queued with its time; when the queue is full the interrupt turns itself off
+// (rc_lost): a storm of edges cannot starve loop(), which hands the queued edges over and then
+// tells the core that edges were lost, before it turns the interrupt back on.
 ISR(PCINT2_vect) {
   uint32_t ticks = timer1_ticks();
   uint8_t pins = PIND & RC_PIN_MASK;
   uint8_t changed = pins ^ rc_pins;
-  uint8_t next = (uint8_t)((rc_head + 1u) % RC_QUEUE);
-  if (changed == 0 || next == rc_tail) {
-    return;  // nothing of ours, or the queue is full: the decoder sees a bad pulse, not a wrong one
+  if (changed == 0) {
+    return;  // nothing of ours
+  }
+  uint8_t head = rc_head;
+  uint8_t next = (uint8_t)((head + 1u) & (RC_QUEUE - 1u));
+  if (next == rc_tail) {
+    rc_lost = 1;
+    PCICR &= (uint8_t)~_BV(PCIE2);
+    return;
   }
   rc_pins = pins;
-  rc_queue[rc_head].ticks = ticks;
-  rc_queue[rc_head].pins = pins;
-  rc_queue[rc_head].changed = changed;
+  rc_queue[head].ticks = ticks;
+  rc_queue[head].pins = (uint8_t)(pins | (changed >> 4));
   rc_head = next;
 }
 
@@ -196,22 +216,49 @@ static void rc_begin() {
   PCICR |= _BV(PCIE2);
 }
 
-static void rc_drain(uint32_t now_ms) {
-  static const uint8_t bits[3] = {_BV(PIND4), _BV(PIND5), _BV(PIND6)};
-  while (rc_tail != rc_head) {
-    rc_edge_t edge;
-    ATOMIC_BLOCK(ATOMIC_RESTORESTATE) {
-      edge.ticks = rc_queue[rc_tail].ticks;
-      edge.pins = rc_queue[rc_tail].pins;
-      edge.changed = rc_queue[rc_tail].changed;
-      rc_tail = (uint8_t)((rc_tail + 1u) % RC_QUEUE);
-    }
-    for (uint8_t ch = 0; ch < 3; ch++) {
-      if (edge.changed & bits[ch]) {
-        fw_core_rc_edge(&core, ch, (edge.pins & bits[ch]) ? 1u : 0u, edge.ticks, now_ms);
+// Every loop() pass: the edges queued so far (no more than were there at the start, so a burst
+// cannot hold loop() here), then the time they were queued by, for the pulses that wait for a
+// quiet line; or, after an overflow, the lost edges: all three channels restart, since while the
+// interrupt was off any of them may have changed. Only the ISR writes rc_head and the slot
+// there, only this rc_tail: a queued slot is read without turning interrupts off.
+static void rc_service(uint32_t now_ms) {
+  uint8_t head;
+  uint8_t lost;
+  uint32_t now_ticks;
+  ATOMIC_BLOCK(ATOMIC_RESTORESTATE) {
+    head = rc_head;
+    lost = rc_lost;
+    now_ticks = timer1_ticks();
+  }
+  uint8_t tail = rc_tail;
+  if (tail == head && !lost && !fw_core_rc_settle_due(&core, now_ticks)) {
+    return;  // nothing to hand over yet
+  }
+  PORTB |= _BV(PORTB0);  // RC_BUSY_PIN, by register: digitalWrite costs ~50 cycles
+  while (tail != head) {
+    const volatile rc_edge_t *edge = &rc_queue[tail];
+    uint32_t ticks = edge->ticks;
+    uint8_t pins = edge->pins;
+    tail = (uint8_t)((tail + 1u) & (RC_QUEUE - 1u));
+    rc_tail = tail;
+    for (uint8_t ch = 0; ch < 3; ch++, pins >>= 1) {  // PD4 + ch, changed bit ch
+      if (pins & 0x01u) {
+        fw_core_rc_edge(&core, ch, (pins & 0x10u) ? 1u : 0u, ticks, now_ms);
       }
     }
   }
+  if (lost) {
+    fw_core_rc_overflow(&core, 0x07u, now_ms);
+    ATOMIC_BLOCK(ATOMIC_RESTORESTATE) {
+      rc_pins = PIND & RC_PIN_MASK;  // the edges from here on are measured again
+      rc_lost = 0;
+      PCIFR = _BV(PCIF2);  // written 1: cleared
+      PCICR |= _BV(PCIE2);
+    }
+  } else {
+    fw_core_rc_settle(&core, now_ticks, now_ms);
+  }
+  PORTB &= (uint8_t)~_BV(PORTB0);
 }
 
 // The board's millisecond clock (wrapping uint32), counted from Timer1's 32-bit count in loop():
@@ -379,11 +426,7 @@ void loop() {
     PORTB &= (uint8_t)~_BV(PORTB4);
   }
   uint32_t now = board_ms();  // also collects a frame end
-  if (rc_tail != rc_head) {
-    PORTB |= _BV(PORTB0);  // RC_BUSY_PIN
-    rc_drain(now);
-    PORTB &= (uint8_t)~_BV(PORTB0);
-  }
+  rc_service(now);
   pwm_sync_service();
   now = board_ms();
   PORTB |= _BV(PORTB3);  // TICK_BUSY_PIN

@@ -23,7 +23,8 @@
  *                      then starts over
  *   events          -> "events <dropped> <kind><value>@<cycle> ..." and clears the log; kinds:
  *                      L ARMED LED level, F host frame delimiter into the UART, A/B pulse width
- *                      changed (cycles), R reset, W/O receiver width taken / train stopped
+ *                      changed (cycles), R reset, W/O receiver width taken / train stopped,
+ *                      N/E a burst's first / last edge
  *   encoder <hz>    -> "ok" (rising edges per second on PD2; 0 stops)
  *   rc <ch> <width_us> <period_us> <phase_us>
  *                   -> "ok": receiver channel ch (0 steering PD4, 1 throttle PD5, 2 switch PD6)
@@ -33,6 +34,13 @@
  *   rc <ch> off     -> "ok": the train stops after the pulse in flight (line low); O<ch> is
  *                      logged at its last falling edge
  *   rc <ch> noise <mean_gap_us> <seed> -> "ok": random edges, gaps 1 .. 2*mean_gap_us
+ *   rc <ch> burst <edges> <gap_min_us> <gap_max_us> <seed> <delay_us> [<train>]
+ *                   -> "ok": glitches on top of whatever drives the line (a train, noise, the
+ *                      idle level): delay_us from now (or, with a running train's channel,
+ *                      from that train's next falling edge: then the delay may be negative),
+ *                      the line flips <edges> times (rounded up to even, so it ends at the
+ *                      level it would have had), gap_min_us .. gap_max_us apart (uniform,
+ *                      whole cycles); logs N<ch> at its first edge and E<ch> at its last
  *   reset           -> "ok" (emulated reset, EEPROM kept)
  *   eeprom          -> "eeprom <hex of the first 64 bytes>"
  *   quit / EOF      -> EEPROM saved, exit 0 */
@@ -240,17 +248,50 @@ typedef struct {
   uint64_t gap_mean;  /* noise: mean cycles between edges */
   unsigned seed;
   int announce;       /* log W at this pulse's falling edge */
+  int glitch;         /* a burst's state: the pin is level XOR glitch */
+  unsigned burst_left;     /* the burst's edges still to come */
+  unsigned burst_edges;    /* of how many */
+  uint64_t burst_gap_min;  /* cycles */
+  uint64_t burst_gap_span; /* gaps are min .. min + span cycles */
+  unsigned burst_seed;
   avr_irq_t *pin;
 } rc_channel_t;
 
 static rc_channel_t rc[3];
+
+/* The pin: what drives it (train, noise, idle level) with a burst's glitches on top. */
+static void rc_drive(rc_channel_t *c) { avr_raise_irq(c->pin, (uint32_t)(c->level ^ c->glitch)); }
+
+/* One edge of a burst: the line flips, whatever the train or the noise is doing. */
+static avr_cycle_count_t rc_burst_edge(struct avr_t *a, avr_cycle_count_t when, void *param) {
+  (void)a;
+  rc_channel_t *c = &rc[(intptr_t)param];
+  if (c->burst_left == 0u) {
+    return 0;
+  }
+  if (c->burst_left == c->burst_edges) {
+    log_event('N', (uint64_t)(intptr_t)param);
+  }
+  c->glitch = !c->glitch;
+  rc_drive(c);
+  c->burst_left--;
+  if (c->burst_left == 0u) {
+    log_event('E', (uint64_t)(intptr_t)param);
+    return 0;
+  }
+  uint64_t gap = c->burst_gap_min;
+  if (c->burst_gap_span > 0u) {
+    gap += (uint64_t)rand_r(&c->burst_seed) % (c->burst_gap_span + 1u);
+  }
+  return when + (gap > 0u ? gap : 1u);
+}
 
 static avr_cycle_count_t rc_edge(struct avr_t *a, avr_cycle_count_t when, void *param) {
   (void)a;
   rc_channel_t *c = &rc[(intptr_t)param];
   if (c->mode == RC_NOISE) {
     c->level = !c->level;
-    avr_raise_irq(c->pin, (uint32_t)c->level);
+    rc_drive(c);
     return when + 1u + (uint64_t)(rand_r(&c->seed) % (unsigned)(2u * c->gap_mean));
   }
   if (!c->level) { /* rising edge */
@@ -259,7 +300,7 @@ static avr_cycle_count_t rc_edge(struct avr_t *a, avr_cycle_count_t when, void *
       return 0;
     }
     c->level = 1;
-    avr_raise_irq(c->pin, 1);
+    rc_drive(c);
     c->rise = when;
     c->announce = c->next_width != c->width;
     c->width = c->next_width;
@@ -267,7 +308,7 @@ static avr_cycle_count_t rc_edge(struct avr_t *a, avr_cycle_count_t when, void *
   }
   c->level = 0; /* falling edge */
   c->fall = when;
-  avr_raise_irq(c->pin, 0);
+  rc_drive(c);
   if (c->announce) {
     log_event('W', (uint64_t)(intptr_t)param);
     c->announce = 0;
@@ -284,7 +325,8 @@ static void rc_command(char *args) {
   int ch = atoi(args);
   char *rest = strchr(args, ' ');
   if (ch < 0 || ch > 2 || rest == NULL) {
-    printf("error usage: rc <0-2> <width_us> <period_us> <phase_us> | off | noise <gap_us> <seed>\n");
+    printf("error usage: rc <0-2> <width_us> <period_us> <phase_us> | off | noise <gap_us> <seed>"
+           " | burst <edges> <gap_min_us> <gap_max_us> <seed> <delay_us>\n");
     return;
   }
   rest++;
@@ -300,7 +342,44 @@ static void rc_command(char *args) {
       }
       c->mode = RC_OFF;
       c->level = 0;
-      avr_raise_irq(c->pin, 0);
+      rc_drive(c);
+    }
+  } else if (strncmp(rest, "burst ", 6) == 0) {
+    unsigned edges = 0, seed = 0;
+    double gap_min_us = 0, gap_max_us = 0, delay_us = 0;
+    int anchor = -1;
+    int n = sscanf(rest + 6, "%u %lf %lf %u %lf %d", &edges, &gap_min_us, &gap_max_us, &seed,
+                   &delay_us, &anchor);
+    if (n < 5 || gap_max_us < gap_min_us || gap_min_us < 0 || anchor < -1 || anchor > 2 ||
+        (anchor < 0 && delay_us < 0) || (anchor >= 0 && rc[anchor].mode != RC_TRAIN)) {
+      printf("error usage: rc <0-2> burst <edges> <gap_min_us> <gap_max_us> <seed> <delay_us>"
+             " [<train 0-2>]\n");
+      return;
+    }
+    /* From now, or from the anchor train's next falling edge (the delay may then be < 0). */
+    int64_t start = (int64_t)avr->cycle + 1;
+    if (anchor >= 0) {
+      const rc_channel_t *t = &rc[anchor];
+      start = t->level ? (int64_t)(t->rise + t->width)
+                       : (int64_t)(t->rise + t->period + t->next_width);
+    }
+    start += (int64_t)(delay_us * (F_CPU / 1000000u));
+    while (anchor >= 0 && start <= (int64_t)avr->cycle) {
+      start += (int64_t)rc[anchor].period;
+    }
+    avr_cycle_timer_cancel(avr, rc_burst_edge, param);
+    if (c->glitch) { /* a burst cut short: the line back to what drives it */
+      c->glitch = 0;
+      rc_drive(c);
+    }
+    c->burst_left = edges + (edges & 1u); /* even: the line ends where it would have been */
+    c->burst_edges = c->burst_left;
+    c->burst_gap_min = (uint64_t)(gap_min_us * (F_CPU / 1000000u) + 0.5);
+    c->burst_gap_span = (uint64_t)(gap_max_us * (F_CPU / 1000000u) + 0.5) - c->burst_gap_min;
+    c->burst_seed = seed;
+    if (c->burst_left > 0u) {
+      avr_cycle_timer_register(avr, (avr_cycle_count_t)(start - (int64_t)avr->cycle),
+                               rc_burst_edge, param);
     }
   } else if (strncmp(rest, "noise ", 6) == 0) {
     double gap_us = 0;
@@ -323,7 +402,7 @@ static void rc_command(char *args) {
       avr_cycle_timer_cancel(avr, rc_edge, param);
       if (c->level) {
         c->level = 0;
-        avr_raise_irq(c->pin, 0);
+        rc_drive(c);
       }
       c->width = 0;
       avr_cycle_timer_register(avr, 1u + (avr_cycle_count_t)(phase_us * (F_CPU / 1000000u)),

@@ -253,6 +253,27 @@ void fwh_rc_edge(void *mem, uint8_t channel, uint8_t level, uint32_t ticks, uint
   }
 }
 
+void fwh_rc_settle(void *mem, uint32_t now_ticks, uint32_t now_ms) {
+  fwh_t *h = (fwh_t *)mem;
+  if (h->booted) {
+    fw_core_rc_settle(&h->core, now_ticks, now_ms);
+  }
+}
+
+uint8_t fwh_rc_settle_due(void *mem, uint32_t now_ticks) {
+  fwh_t *h = (fwh_t *)mem;
+  return h->booted ? fw_core_rc_settle_due(&h->core, now_ticks) : 0u;
+}
+
+void fwh_rc_overflow(void *mem, uint8_t channel_mask, uint32_t now_ms) {
+  fwh_t *h = (fwh_t *)mem;
+  if (h->booted) {
+    fw_core_rc_overflow(&h->core, channel_mask, now_ms);
+  }
+}
+
+uint32_t fwh_rc_settle_us(void) { return FW_RC_SETTLE_US; }
+
 uint8_t fwh_rc_drives(void *mem) {
   fwh_t *h = (fwh_t *)mem;
   return h->booted ? fw_core_rc_drives(&h->core) : 0u;

@@ -609,17 +609,56 @@ void fw_core_rx(fw_core_t *core, const uint8_t *data, uint16_t len, uint32_t now
   }
 }
 
+/* A pulse counted (or a channel restarted): it may move a stick, the switch, or the outputs. */
+static void rc_changed(fw_core_t *core) {
+  apply_receiver(core);
+  if (core->rc_drives) {
+    write_outputs(core, 0u);
+  }
+}
+
 void fw_core_rc_edge(fw_core_t *core, uint8_t channel, uint8_t level, uint32_t ticks,
                      uint32_t now_ms) {
   if (channel >= FW_RC_CHANNELS) {
     return;
   }
-  fw_rc_edge(&core->rc[channel], level, ticks, now_ms);
-  if (!level) { /* a pulse ended: it may move a stick, the switch, or the outputs */
-    apply_receiver(core);
-    if (core->rc_drives) {
-      write_outputs(core, 0u);
+  if (fw_rc_edge(&core->rc[channel], level, ticks, now_ms)) {
+    rc_changed(core);
+  }
+}
+
+void fw_core_rc_settle(fw_core_t *core, uint32_t now_ticks, uint32_t now_ms) {
+  uint8_t taken = 0u;
+  uint8_t i;
+  (void)now_ms;
+  for (i = 0; i < FW_RC_CHANNELS; i++) {
+    taken |= fw_rc_settle(&core->rc[i], now_ticks);
+  }
+  if (taken) {
+    rc_changed(core);
+  }
+}
+
+uint8_t fw_core_rc_settle_due(const fw_core_t *core, uint32_t now_ticks) {
+  uint8_t i;
+  for (i = 0; i < FW_RC_CHANNELS; i++) {
+    if (fw_rc_settle_due(&core->rc[i], now_ticks)) {
+      return 1u;
     }
+  }
+  return 0u;
+}
+
+void fw_core_rc_overflow(fw_core_t *core, uint8_t channel_mask, uint32_t now_ms) {
+  uint8_t i;
+  (void)now_ms;
+  for (i = 0; i < FW_RC_CHANNELS; i++) {
+    if (channel_mask & (uint8_t)(1u << i)) {
+      fw_rc_restart(&core->rc[i]);
+    }
+  }
+  if (channel_mask & (uint8_t)((1u << FW_RC_CHANNELS) - 1u)) {
+    rc_changed(core); /* armed with the receiver wired: its signal is gone, FAILSAFE */
   }
 }
 

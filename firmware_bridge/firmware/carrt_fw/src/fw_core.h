@@ -11,7 +11,8 @@
  * an explicit CLEAR (with ESTOP and ARM clear). Outputs are neutral in every state but ARMED.
  *
  * The RC receiver (config.controls RECEIVER or BOTH): the shim hands every edge of its three
- * pins to fw_core_rc_edge(); the decoder (fw_rc.h) validates each channel, and the rules here
+ * pins to fw_core_rc_edge(), the time to fw_core_rc_settle() and any edges it lost to
+ * fw_core_rc_overflow(); the decoder (fw_rc.h) validates each channel, and the rules here
  * decide: the switch channel in its e-stop position latches ESTOP; ARMED with the receiver's
  * signal lost is FAILSAFE; in ARMED, a stick out of its deadzone (or, with RECEIVER, any COMMAND
  * without the AUTO flag) hands the wheels to the receiver until the AUTO flag's next 0->1 edge.
@@ -94,9 +95,19 @@ void fw_core_rx(fw_core_t *core, const uint8_t *data, uint16_t len, uint32_t now
 void fw_core_tick(fw_core_t *core, uint32_t now_ms);
 
 /* An edge of a receiver pin (FW_RC_*): level 1 rising, 0 falling, ticks Timer1's 0.5 us count
- * (32-bit, wrapping) at the edge. Rules that a pulse may trigger are applied at once. */
+ * (32-bit, wrapping) at the edge. Rules that a pulse may trigger are applied as it counts. */
 void fw_core_rc_edge(fw_core_t *core, uint8_t channel, uint8_t level, uint32_t ticks,
                      uint32_t now_ms);
+/* The receiver's clock, now_ticks in the edges' count, once every edge stamped before it has
+ * been handed over (the shim: every loop() pass after its edges): a pulse counts once its line
+ * has been quiet FW_RC_SETTLE_US after it (fw_rc.h), and its rules are applied then. */
+void fw_core_rc_settle(fw_core_t *core, uint32_t now_ticks, uint32_t now_ms);
+/* Would fw_core_rc_settle count a pulse at now_ticks? (the shim asks before it does the work) */
+uint8_t fw_core_rc_settle_due(const fw_core_t *core, uint32_t now_ticks);
+/* Edges of the channels in channel_mask (bit FW_RC_*) could not be stamped (the shim's queue was
+ * full): those channels have no valid signal until a new run of good pulses, at once (ARMED
+ * with the receiver wired: FAILSAFE, RC_LOST), instead of a width timed across a lost edge. */
+void fw_core_rc_overflow(fw_core_t *core, uint8_t channel_mask, uint32_t now_ms);
 
 /* Is this config acceptable (pulse ranges, centre between endpoints, limits, slew)? */
 uint8_t fw_config_valid(const carrt_config_t *config);

@@ -52,8 +52,38 @@ static void steady(fw_rc_channel_t *ch) {
   }
 }
 
-void fw_rc_edge(fw_rc_channel_t *ch, uint8_t level, uint32_t ticks, uint32_t now_ms) {
+/* The pulse that settled counts: its width joins the recent ones. */
+static uint8_t take(fw_rc_channel_t *ch) {
+  memmove(&ch->recent_us[1], &ch->recent_us[0], sizeof(ch->recent_us) - sizeof(ch->recent_us[0]));
+  ch->recent_us[0] = ch->settling_us;
+  ch->settling_us = 0u;
+  steady(ch);
+  ch->last_good_ms = ch->fall_ms;
+  if (ch->run < FW_RC_MIN_RUN) {
+    ch->run++;
+  }
+  ch->valid = (uint8_t)(ch->run >= FW_RC_MIN_RUN);
+  return 1u;
+}
+
+/* Has the line stayed low long enough since the settling pulse's end? (A time before that end,
+ * which a caller should not pass, counts as not yet.) */
+static uint8_t settled(const fw_rc_channel_t *ch, uint32_t ticks) {
+  uint32_t quiet = ticks - ch->fall_ticks;
+  return (quiet >= FW_RC_SETTLE_US * FW_RC_TICKS_PER_US && quiet < 0x80000000UL) ? 1u : 0u;
+}
+
+uint8_t fw_rc_edge(fw_rc_channel_t *ch, uint8_t level, uint32_t ticks, uint32_t now_ms) {
+  uint8_t taken = 0u;
   if (level) {
+    if (ch->settling_us != 0u) {
+      if (settled(ch, ticks)) {
+        taken = take(ch);
+      } else {
+        ch->settling_us = 0u; /* more edges right after its end: noise cut it short */
+        reject(ch);
+      }
+    }
     uint32_t period = ticks - ch->rise_ticks;
     ch->period_ok = (uint8_t)(ch->have_rise &&
                               period >= FW_RC_MIN_PERIOD_US * FW_RC_TICKS_PER_US &&
@@ -64,30 +94,37 @@ void fw_rc_edge(fw_rc_channel_t *ch, uint8_t level, uint32_t ticks, uint32_t now
     ch->rise_ticks = ticks;
     ch->have_rise = 1u;
     ch->high = 1u;
-    return;
+    return taken;
   }
   if (!ch->high) {
-    return; /* a falling edge without its rising one (power-up, glitch): nothing to time */
+    return 0u; /* a falling edge without its rising one (power-up, glitch): nothing to time */
   }
   ch->high = 0u;
   uint32_t width = ticks - ch->rise_ticks;
   if (width < FW_RC_MIN_WIDTH_US * FW_RC_TICKS_PER_US ||
       width > FW_RC_MAX_WIDTH_US * FW_RC_TICKS_PER_US) {
     reject(ch);
-    return;
+    return 0u;
   }
   if (!ch->period_ok) {
-    return; /* the first pulse after a gap: its width is fine, its period unknown */
+    return 0u; /* the first pulse after a gap: its width is fine, its period unknown */
   }
-  memmove(&ch->recent_us[1], &ch->recent_us[0], sizeof(ch->recent_us) - sizeof(ch->recent_us[0]));
-  ch->recent_us[0] = (uint16_t)(width / FW_RC_TICKS_PER_US);
-  steady(ch);
-  ch->last_good_ms = now_ms;
-  if (ch->run < FW_RC_MIN_RUN) {
-    ch->run++;
-  }
-  ch->valid = (uint8_t)(ch->run >= FW_RC_MIN_RUN);
+  ch->settling_us = (uint16_t)(width / FW_RC_TICKS_PER_US); /* counts once the line is quiet */
+  ch->fall_ticks = ticks;
+  ch->fall_ms = now_ms;
+  return 0u;
 }
+
+uint8_t fw_rc_settle_due(const fw_rc_channel_t *ch, uint32_t now_ticks) {
+  return (ch->settling_us != 0u && settled(ch, now_ticks)) ? 1u : 0u;
+}
+
+uint8_t fw_rc_settle(fw_rc_channel_t *ch, uint32_t now_ticks) {
+  return fw_rc_settle_due(ch, now_ticks) ? take(ch) : 0u;
+}
+
+void fw_rc_restart(fw_rc_channel_t *ch) { fw_rc_init(ch); }
+
 
 void fw_rc_poll(fw_rc_channel_t *ch, uint32_t now_ms) {
   if (ch->run > 0u && (uint32_t)(now_ms - ch->last_good_ms) > FW_RC_LOSS_MS) {
