@@ -468,3 +468,24 @@ def test_a_refused_export_fails_the_run_in_one_report_line(sim_episodes, tmp_pat
     said = capsys.readouterr().out
     assert "export FAILED: " in said and (out / "policy.pt").is_file()
     assert "export FAILED: " in (out / "report.md").read_text()
+
+
+def test_demo_policy_refines_its_last_network_with_dirl(sim_episodes, tmp_path, monkeypatch):
+    """training/demo_policy.py --sloppy-world asks carrt-train for --dirl explicitly, refining
+    the last network itself (reimitation_steps=0), and ships what refined/ holds."""
+    from types import SimpleNamespace
+
+    from training import demo_policy
+    from training.iterate import parse
+
+    (tmp_path / "sloppy").symlink_to(sim_episodes)
+    seen = []
+    monkeypatch.setattr(demo_policy, "run", lambda argv, done=None: seen.append(argv))
+    a = SimpleNamespace(episodes=1, jobs=1, seed=0, threads=1)
+    shipped = demo_policy.sloppy_world_refinement(
+        sys.executable, [sim_episodes], tmp_path / "il3", tmp_path, a
+    )
+    assert shipped == tmp_path / "refined" / "refined"
+    asked, cfg = parse(seen[-1][2:])  # after `python training/iterate.py`
+    assert asked.dirl and cfg.init == str(tmp_path / "il3")
+    assert (cfg.reimitation_steps, cfg.world_model_steps, cfg.refine_steps) == (0, 3000, 300)
