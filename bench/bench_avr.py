@@ -33,7 +33,8 @@ BASELINE_COMMIT = "41e5360"  # the last firmware without the RC receiver (issue 
 
 
 def memory_use(elf: Path) -> dict:
-    """Flash (.text + .data) and static RAM (.data + .bss) of an AVR ELF, from avr-size."""
+    """Flash (.text + .data) and static RAM (.data + .bss + .noinit) of an AVR ELF, from
+    avr-size."""
     out = subprocess.run(["avr-size", "-A", str(elf)], capture_output=True, text=True, check=True)
     sizes = {}
     for line in out.stdout.splitlines():
@@ -43,7 +44,7 @@ def memory_use(elf: Path) -> dict:
     data = sizes.get(".data", 0)
     return {
         "flash_bytes": sizes.get(".text", 0) + data,
-        "ram_bytes": data + sizes.get(".bss", 0),
+        "ram_bytes": data + sizes.get(".bss", 0) + sizes.get(".noinit", 0),
     }
 
 

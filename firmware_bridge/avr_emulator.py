@@ -9,8 +9,8 @@ int arithmetic. `make firmware` builds the sketch into build/firmware/carrt_fw.e
 This module builds both on first use (make, in a source checkout) and speaks the emulator's
 line protocol on its stdin/stdout: emulated time, pulse widths measured on OC1A/OC1B, the ARMED
 LED's edges and frame arrivals with their cycle stamps, the encoder rate, a reset that keeps
-EEPROM. Every time it reports is emulated time, so the tests measure the board's watchdog with
-the board's own clock, not the test machine's scheduling.
+EEPROM and sets its cause's reset flag. Every time it reports is emulated time, so the tests
+measure the board's watchdog with the board's own clock, not the test machine's scheduling.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+from firmware_bridge.messages import ResetCause
 from firmware_bridge.port_lock import PortLock
 from firmware_bridge.receiver_pins import FRAME_US, SLOT_US
 
@@ -86,9 +87,9 @@ class Event:
     """Something the emulator saw, stamped with the emulated cycle it happened at.
 
     kind: "L" ARMED LED level (value 0/1), "F" a host frame's 0x00 delimiter entered the UART,
-    "A"/"B" steering/ESC pulse width changed (value in cycles), "R" emulated reset, "W" a
-    receiver channel's (value) first pulse with a new width ended, "O" its train stopped, "N"/"E"
-    the first / last edge of a burst on that channel (rc_burst).
+    "A"/"B" steering/ESC pulse width changed (value in cycles), "R" emulated reset (value: its
+    messages.ResetCause), "W" a receiver channel's (value) first pulse with a new width ended,
+    "O" its train stopped, "N"/"E" the first / last edge of a burst on that channel (rc_burst).
     """
 
     kind: str
@@ -273,9 +274,19 @@ class AvrEmulator:
             f"{int(seed)} {delay_us:.3f}{anchor}"
         )
 
-    def reset(self) -> None:
-        """Press the reset button: RAM and registers start over, EEPROM is kept."""
-        self.ask("reset")
+    def reset(self, cause: ResetCause = ResetCause.EXTERNAL) -> None:
+        """Reset the board: RAM and registers start over, EEPROM is kept, and MCUSR holds the
+        flag this cause sets on the chip (EXTERNAL: the reset button or DTR; WATCHDOG: the
+        watchdog ran out; BROWN_OUT, POWER_ON), so its next HELLO names it."""
+        words = {
+            ResetCause.EXTERNAL: "external",
+            ResetCause.WATCHDOG: "watchdog",
+            ResetCause.BROWN_OUT: "brown-out",
+            ResetCause.POWER_ON: "power-on",
+        }
+        if cause not in words:
+            raise ValueError(f"no reset sets the flags of {ResetCause(cause).name}")
+        self.ask(f"reset {words[ResetCause(cause)]}")
 
     def eeprom(self) -> bytes:
         """The first 64 bytes of EEPROM (boot counter at 0, config blob at 8)."""

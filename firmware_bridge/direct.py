@@ -56,7 +56,7 @@ class DirectBoardLink(BoardLink):
         return int(self.clock() * 1000.0)
 
     def open(self) -> DirectBoardLink:
-        self.core.boot(secrets.randbits(32), self.now_ms())
+        self.core.boot(secrets.randbits(32), self.now_ms(), m.ResetCause.POWER_ON)
         self._tick_offset = self.plant.step(0.0, 1500, 1500)
         self._ser = _CoreWire(self)  # type: ignore[assignment]
         self._send(_hello_request)

@@ -179,6 +179,11 @@ class Receiver:
             boot_id=hello.boot_id,
             firmware_version=(hello.fw_major, hello.fw_minor, hello.fw_patch),
             config_from_storage=bool(hello.config_from_storage),
+            reset_cause=(
+                m.ResetCause(hello.reset_cause)
+                if hello.reset_cause in {c.value for c in m.ResetCause}
+                else m.ResetCause.UNKNOWN
+            ),
         )
         previous, self.board = self.board, info
         if previous is not None and previous.boot_id != info.boot_id:

@@ -40,6 +40,7 @@ class BoardInfo:
     boot_id: int
     firmware_version: tuple[int, int, int]
     config_from_storage: bool
+    reset_cause: int = m.ResetCause.UNKNOWN  # a messages.ResetCause: why the board last started
 
 
 @dataclass(frozen=True)

@@ -109,6 +109,33 @@ class Controls(IntEnum):
     BOTH = 2  # pad and receiver; the receiver drives once a stick leaves its deadzone
 
 
+class ResetCause(IntEnum):
+    """Why the board last started (``Hello.reset_cause``), from the MCU's reset flags."""
+
+    UNKNOWN = 0  # no flag to go by (a bootloader cleared them and handed nothing on)
+    POWER_ON = 1  # power was applied (or came back after being off)
+    EXTERNAL = 2  # the reset pin: the reset button, or a host opening the port (USB DTR)
+    BROWN_OUT = 3  # the supply dipped below the brown-out level (a stalling motor, a weak battery)
+    WATCHDOG = 4  # the MCU's watchdog timer ran out (this firmware does not start it)
+
+
+RESET_CAUSE_TEXT = {
+    ResetCause.UNKNOWN: "unknown",
+    ResetCause.POWER_ON: "power-on",
+    ResetCause.EXTERNAL: "reset pin",
+    ResetCause.BROWN_OUT: "brown-out",
+    ResetCause.WATCHDOG: "watchdog",
+}
+
+
+def reset_cause_text(code: int) -> str:
+    """A reset cause (``ResetCause`` or its wire value) in words; "unknown" for any other."""
+    try:
+        return RESET_CAUSE_TEXT[ResetCause(code)]
+    except ValueError:
+        return "unknown"
+
+
 class TelemetryFlags:
     """Bits of ``Telemetry.flags``."""
 
@@ -144,6 +171,7 @@ class Hello:
     fw_minor: int = wire("u8", "firmware version, minor")
     fw_patch: int = wire("u8", "firmware version, patch")
     config_from_storage: int = wire("u8", "1 when the PWM config came from persistent storage")
+    reset_cause: int = wire("u8", "why the board last started (see ResetCause)")
 
 
 @dataclass(frozen=True)
@@ -257,7 +285,7 @@ MESSAGES: tuple[type, ...] = (
     Telemetry,
 )
 
-ENUMS: tuple[type[IntEnum], ...] = (State, Reason, ArmRefusal, ConfigResult, Controls)
+ENUMS: tuple[type[IntEnum], ...] = (State, Reason, ArmRefusal, ConfigResult, Controls, ResetCause)
 """The enumerations on the wire, in the header, the protocol hash and PROTOCOL.md."""
 
 BY_TYPE: dict[int, type] = {m.TYPE: m for m in MESSAGES}

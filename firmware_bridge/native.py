@@ -117,7 +117,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     signatures = {
         "fwh_size": (c.c_size_t, []),
         "fwh_create": (None, [c.c_void_p]),
-        "fwh_boot": (None, [c.c_void_p, c.c_uint32, c.c_uint32]),
+        "fwh_boot": (None, [c.c_void_p, c.c_uint32, c.c_uint8, c.c_uint32]),
         "fwh_rx": (None, [c.c_void_p, c.c_char_p, c.c_size_t, c.c_uint32]),
         "fwh_tick": (None, [c.c_void_p, c.c_uint32]),
         "fwh_tx_take": (c.c_size_t, [c.c_void_p, u8p, c.c_size_t]),
@@ -213,8 +213,9 @@ class FirmwareCore:
         self._lib.fwh_create(self._h)
         self._out = (ctypes.c_uint8 * TX_BUFFER)()
 
-    def boot(self, boot_id: int, now_ms: int) -> None:
-        self._lib.fwh_boot(self._h, int(boot_id) & 0xFFFFFFFF, _ms(now_ms))
+    def boot(self, boot_id: int, now_ms: int, reset_cause: int = m.ResetCause.POWER_ON) -> None:
+        """Start (or restart) the board; its HELLO names reset_cause (a messages.ResetCause)."""
+        self._lib.fwh_boot(self._h, int(boot_id) & 0xFFFFFFFF, int(reset_cause) & 0xFF, _ms(now_ms))
 
     def feed(self, data: bytes, now_ms: int) -> None:
         data = bytes(data)

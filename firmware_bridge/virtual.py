@@ -27,7 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from firmware_bridge.drivetrain import Plant, WheelPlant
-from firmware_bridge.messages import Reason, State
+from firmware_bridge.messages import Reason, ResetCause, State
 from firmware_bridge.native import FirmwareBuildError, FirmwareCore
 from firmware_bridge.port_lock import PortLock
 from firmware_bridge.receiver_pins import ReceiverPins
@@ -83,10 +83,12 @@ class VirtualBoard:
     def now_ms(self) -> int:
         return int((self._clock() - self._t0) * 1000.0)
 
-    def reboot(self) -> None:
-        """Power-cycle the board: new boot id, RAM state lost, persistent config kept."""
+    def reboot(self, reset_cause: ResetCause = ResetCause.POWER_ON) -> None:
+        """Restart the board: new boot id, RAM state lost, persistent config kept; its HELLO
+        names reset_cause (POWER_ON: a power cycle; EXTERNAL: the reset pin, as DTR does;
+        BROWN_OUT; WATCHDOG)."""
         with self._lock:
-            self._core.boot(secrets.randbits(32), self.now_ms())
+            self._core.boot(secrets.randbits(32), self.now_ms(), reset_cause)
             self._tick_offset = self.plant.step(0.0, 1500, 1500)
             self.boot_count += 1
 
@@ -154,8 +156,8 @@ class VirtualBoard:
         hung_up = any(ev & select.POLLHUP for _, ev in events)
         if not hung_up and not self._host_connected:
             self._host_connected = True
-            if self.reset_on_open:  # like an Arduino's DTR auto-reset
-                self.reboot()
+            if self.reset_on_open:  # like an Arduino's DTR auto-reset: the reset pin
+                self.reboot(ResetCause.EXTERNAL)
         elif hung_up:
             self._host_connected = False
         if not hung_up and any(ev & select.POLLIN for _, ev in events):

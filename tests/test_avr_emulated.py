@@ -184,6 +184,46 @@ def test_config_persists_in_eeprom_across_a_reset(emulator, host):
     assert emulator.pulses_us() == pytest.approx((1520.0, 1480.0), abs=1.0)
 
 
+def test_the_hello_names_why_the_board_started(emulator, host):
+    """simavr starts the chip with PORF set (a power-on); the emulator's resets set the flag
+    their cause sets on the chip; the binary reads MCUSR before its C runtime runs and names the
+    cause in every HELLO of that boot."""
+    host.send(m.HelloRequest())
+    hello = host.wait_for(lambda x: isinstance(x, m.Hello), what="HELLO")
+    assert hello.reset_cause == m.ResetCause.POWER_ON
+    causes = [m.ResetCause.EXTERNAL, m.ResetCause.WATCHDOG, m.ResetCause.BROWN_OUT,
+              m.ResetCause.POWER_ON, m.ResetCause.EXTERNAL]  # fmt: skip
+    for cause in causes:
+        before = hello.boot_id
+        emulator.reset(cause)
+        hello = host.wait_for(lambda x: isinstance(x, m.Hello), what=f"HELLO after {cause.name}")
+        assert hello.boot_id != before and hello.reset_cause == cause
+        host.send(m.HelloRequest())
+        again = host.wait_for(lambda x: isinstance(x, m.Hello), what="HELLO on request")
+        assert (again.boot_id, again.reset_cause) == (hello.boot_id, cause)
+    assert [e.value for e in emulator.take_events() if e.kind == "R"] == [int(c) for c in causes]
+    with pytest.raises(ValueError):
+        emulator.reset(m.ResetCause.UNKNOWN)  # no reset sets no flag
+
+
+def test_a_reset_of_the_chip_stops_nothing_outside_it(emulator, host):
+    """The receiver's pulses and the wheel encoder go on through a reset (simavr's cancels the
+    emulator's timers that drive them): the rebooted board counts both again."""
+    emulator.rc_receiver([1500, 1620, 1000])
+    emulator.set_encoder_hz(500.0)
+    time.sleep(0.3)
+    emulator.reset()
+    host.wait_for(lambda x: isinstance(x, m.Hello), what="HELLO after the reset")
+    time.sleep(0.4)
+    tel = host.telemetry()
+    assert tel.mcu_time_ms < 600  # the new boot's
+    assert tel.flags & m.TelemetryFlags.RC_SIGNAL
+    assert (tel.rc_steer_us, tel.rc_throttle_us, tel.rc_switch_us) == pytest.approx(
+        (1500, 1620, 1000), abs=1
+    )
+    assert tel.encoder_ticks >= 0.5 * 500 * tel.mcu_time_ms / 1000
+
+
 def test_garbage_on_the_uart_neither_arms_nor_stops_the_board(emulator, host):
     rng = random.Random(17)
     before = host.telemetry()

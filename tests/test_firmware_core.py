@@ -34,9 +34,29 @@ def test_boot_is_disarmed_neutral_and_says_hello():
     )
     assert b.neutral
     (hello,) = b.frames()
-    assert hello.message == m.Hello(m.PROTOCOL_HASH, 0xDEADBEEF, *m.FIRMWARE_VERSION, 0)
+    assert hello.message == m.Hello(
+        m.PROTOCOL_HASH, 0xDEADBEEF, *m.FIRMWARE_VERSION, 0, m.ResetCause.POWER_ON
+    )
     b.send(m.HelloRequest())
     assert [f.message for f in b.frames()] == [hello.message]
+
+
+@pytest.mark.parametrize("cause", list(m.ResetCause))
+def test_every_hello_of_a_boot_names_its_reset_cause(cause):
+    b = Bench()
+    b.core.boot(0xB008, b.now, cause)
+    b.send(m.HelloRequest())
+    hellos = [f.message for f in b.frames(m.Hello)]
+    # the bench's own boot's HELLO, never read, went with the reset (as a UART's queue would):
+    # the second boot's, then the answer to the request
+    assert [(h.boot_id, h.reset_cause) for h in hellos] == [(0xB008, cause)] * 2
+
+
+def test_a_reset_cause_the_protocol_does_not_know_goes_out_as_unknown():
+    b = Bench()
+    b.frames()
+    b.core.boot(0xB008, b.now, max(m.ResetCause) + 1)
+    assert b.frames(m.Hello)[-1].message.reset_cause == m.ResetCause.UNKNOWN
 
 
 @pytest.mark.parametrize("start", [0, NEAR_WRAP], ids=["t0", "across-wrap"])

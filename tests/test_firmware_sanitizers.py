@@ -120,7 +120,7 @@ def drive(seed: int = 1, rounds: int = 2000) -> None:
     rng = random.Random(seed)
     core = FirmwareCore(sanitize=True)
     now = rng.choice([0, 0xFFFFF000])
-    core.boot(rng.getrandbits(32), now)
+    core.boot(rng.getrandbits(32), now, rng.randrange(256))
     seq = encoder = 0
     seen = set()
 
@@ -183,7 +183,7 @@ def drive(seed: int = 1, rounds: int = 2000) -> None:
                 core.tick(now)
         elif roll < 0.95:
             core.storage = rng.randbytes(rng.randint(0, 40)) if rng.random() < 0.3 else core.storage
-            core.boot(rng.getrandbits(32), now)
+            core.boot(rng.getrandbits(32), now, rng.randrange(256))
             encoder = 0
         if rng.random() < 0.3:
             core.take_output()
@@ -202,7 +202,7 @@ def canary() -> None:
     lib.fwh_create(handle)
     too_small = ctypes.create_string_buffer(1024)  # malloc'd: ASan guards its edges
     lib.fwh_storage_set(handle, ctypes.cast(too_small, ctypes.POINTER(ctypes.c_uint8)))
-    lib.fwh_boot(handle, 1, 0)
+    lib.fwh_boot(handle, 1, 1, 0)
     for t in range(0, 2000, 20):
         lib.fwh_tick(handle, t)
     lib.fwh_tx_take(handle, ctypes.cast(too_small, ctypes.POINTER(ctypes.c_uint8)), 8192)

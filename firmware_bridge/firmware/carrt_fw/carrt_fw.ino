@@ -30,6 +30,9 @@
 // the millisecond clock is counted from Timer1 in loop(), so Arduino's Timer0 interrupt (millis)
 // is switched off after boot.
 //
+// At reset, before the C runtime starts, the MCU's reset flags (MCUSR, or a bootloader's copy of
+// them) are read for the reset cause that every HELLO of the boot names.
+//
 // More pins tell an observer (a scope, or the emulator in the tests) what the core does:
 // D13 (the on-board LED) is lit while ARMED; D12 is high while received bytes are handled,
 // D11 while the core ticks (its cost, TELEMETRY included) and D8 while receiver edges are
@@ -373,6 +376,66 @@ static uint8_t hal_storage_store(void *ctx, const uint8_t *data, uint16_t len) {
   return 1;
 }
 
+// ---------------------------------------------------------------- reset cause
+
+// Why the board started, from the MCU's reset flags (MCUSR), read before anything else runs:
+// in .init0, ahead of the C runtime (which would clear a .bss copy: these live in .noinit).
+// MCUSR keeps its flags until written, so they are cleared here for the next reset, and the
+// watchdog is switched off (a watchdog reset leaves it running until WDRF is cleared; this
+// firmware never uses it). A bootloader may have run first: Arduino's optiboot clears MCUSR,
+// and its later versions leave the original in r2, which is used when MCUSR reads 0 (the Uno's
+// stock optiboot 4.4 leaves nothing there: r2 then holds whatever the program had in it, and
+// reads as UNKNOWN unless it happens to look like reset flags).
+static uint8_t boot_mcusr __attribute__((section(".noinit")));
+static uint8_t boot_r2 __attribute__((section(".noinit")));
+
+extern "C" void read_reset_flags() __attribute__((naked, used, section(".init0")));
+void read_reset_flags() {
+  __asm__ __volatile__(
+      "sts %[r2_copy], r2\n\t"
+      "in r24, %[mcusr]\n\t"
+      "sts %[mcusr_copy], r24\n\t"
+      "clr r0\n\t"  // r1 is not zero yet: the C runtime clears it in .init2
+      "out %[mcusr], r0\n\t"
+      "ldi r24, %[change]\n\t"
+      "sts %[wdtcsr], r24\n\t"  // WDCE | WDE, then 0 within four cycles: watchdog off
+      "sts %[wdtcsr], r0\n\t"
+      :
+      : [r2_copy] "i"(&boot_r2), [mcusr_copy] "i"(&boot_mcusr),
+        [mcusr] "I"(_SFR_IO_ADDR(MCUSR)), [wdtcsr] "i"(_SFR_MEM_ADDR(WDTCSR)),
+        [change] "M"(_BV(WDCE) | _BV(WDE))
+      : "r0", "r24", "memory");
+}
+
+// The flags accumulate until cleared, so the likeliest first: a power-on may also set BORF; a
+// reset pin with WDRF is optiboot 8 leaving through its watchdog after a reset-pin start.
+static uint8_t reset_cause_of(uint8_t flags) {
+  if (flags & _BV(PORF)) {
+    return CARRT_RESET_CAUSE_POWER_ON;
+  }
+  if (flags & _BV(BORF)) {
+    return CARRT_RESET_CAUSE_BROWN_OUT;
+  }
+  if (flags & _BV(EXTRF)) {
+    return CARRT_RESET_CAUSE_EXTERNAL;
+  }
+  if (flags & _BV(WDRF)) {
+    return CARRT_RESET_CAUSE_WATCHDOG;
+  }
+  return CARRT_RESET_CAUSE_UNKNOWN;
+}
+
+static uint8_t boot_reset_cause() {
+  const uint8_t all = _BV(PORF) | _BV(EXTRF) | _BV(BORF) | _BV(WDRF);
+  if (boot_mcusr & all) {
+    return reset_cause_of(boot_mcusr);
+  }
+  if (boot_r2 != 0 && (boot_r2 & (uint8_t)~all) == 0) {  // a bootloader's copy, it seems
+    return reset_cause_of(boot_r2);
+  }
+  return CARRT_RESET_CAUSE_UNKNOWN;
+}
+
 // A boot id that differs on every reset, so the host notices a reboot even when it was quick:
 // a persistent boot counter mixed with ADC noise from a floating pin and the boot timing.
 static uint32_t make_boot_id() {
@@ -409,7 +472,7 @@ void setup() {
   uint32_t boot_id = make_boot_id();  // uses micros(): Timer0's interrupt still runs here
   TIMSK0 &= (uint8_t)~_BV(TOIE0);     // from now on the clock is Timer1's (board_ms)
   ATOMIC_BLOCK(ATOMIC_RESTORESTATE) { clock_last_ticks = timer1_ticks(); }
-  fw_core_init(&core, &hal, boot_id, board_ms());
+  fw_core_init(&core, &hal, boot_id, boot_reset_cause(), board_ms());
   rc_begin();
 }
 

@@ -11,7 +11,8 @@
  *   - PD2 (INT0, wheel encoder) driven with a square wave at a commanded rate;
  *   - PD4/PD5/PD6 (the RC receiver's steering, throttle and switch channels) driven with pulse
  *     trains of a commanded width, period and phase, or with random edges (noise);
- *   - a reset that keeps EEPROM, and EEPROM saved to / loaded from a file.
+ *   - a reset that keeps EEPROM and sets the reset flag of its cause, and EEPROM saved to /
+ *     loaded from a file.
  *
  * Control channel: one command per line on stdin, one reply line on stdout (firmware_bridge/
  * avr_emulator.py speaks it). The first line out is "ready <pty path>".
@@ -23,7 +24,7 @@
  *                      then starts over
  *   events          -> "events <dropped> <kind><value>@<cycle> ..." and clears the log; kinds:
  *                      L ARMED LED level, F host frame delimiter into the UART, A/B pulse width
- *                      changed (cycles), R reset, W/O receiver width taken / train stopped,
+ *                      changed (cycles), R reset (value: its cause), W/O receiver width taken / train stopped,
  *                      N/E a burst's first / last edge
  *   encoder <hz>    -> "ok" (rising edges per second on PD2; 0 stops)
  *   rc <ch> <width_us> <period_us> <phase_us>
@@ -41,7 +42,10 @@
  *                      the line flips <edges> times (rounded up to even, so it ends at the
  *                      level it would have had), gap_min_us .. gap_max_us apart (uniform,
  *                      whole cycles); logs N<ch> at its first edge and E<ch> at its last
- *   reset           -> "ok" (emulated reset, EEPROM kept)
+ *   reset [<cause>] -> "ok": emulated reset, EEPROM kept, with the reset flag in MCUSR the
+ *                      cause sets on the chip: external (the reset pin; the default),
+ *                      watchdog, brown-out, power-on; R<code> is logged (code: 2, 4, 3, 1 as
+ *                      in messages.ResetCause)
  *   eeprom          -> "eeprom <hex of the first 64 bytes>"
  *   quit / EOF      -> EEPROM saved, exit 0 */
 #define _GNU_SOURCE
@@ -486,13 +490,63 @@ static void eeprom_save(void) {
   }
 }
 
-static void emulated_reset(void) {
+/* simavr's reset cancels every cycle timer, and with them what drives the pins from outside the
+ * chip (a receiver, noise, a burst, the encoder), which a reset of the chip would not stop:
+ * each one goes on from where it was (an edge that fell due meanwhile comes at once). */
+static void restart_pin_drivers(void) {
+  for (int ch = 0; ch < 3; ch++) {
+    rc_channel_t *c = &rc[ch];
+    void *param = (void *)(intptr_t)ch;
+    rc_drive(c);
+    uint64_t due = 0;
+    if (c->mode == RC_NOISE) {
+      due = avr->cycle + 1u;
+    } else if (c->mode == RC_TRAIN || c->mode == RC_STOPPING) {
+      due = c->level ? c->rise + c->width : c->rise + c->period;
+    }
+    if (due != 0u) {
+      avr_cycle_timer_register(avr, due > avr->cycle ? due - avr->cycle : 1u, rc_edge, param);
+    }
+    if (c->burst_left > 0u) {
+      avr_cycle_timer_register(avr, 1u, rc_burst_edge, param);
+    }
+  }
+  avr_raise_irq(pd2, (uint32_t)encoder_level);
+  set_encoder(encoder_hz);
+}
+
+/* A reset, with the reset flag in MCUSR that the cause sets on the chip: simavr's own reset
+ * clears the I/O registers and sets none (it sets PORF once, at start: the power-on). */
+static int emulated_reset(const char *cause) {
+  avr_regbit_t flag;
+  uint64_t code;
+  if (cause[0] == '\0' || strcmp(cause, "external") == 0) {
+    flag = avr->reset_flags.extrf;
+    code = 2;
+  } else if (strcmp(cause, "watchdog") == 0) {
+    flag = avr->reset_flags.wdrf;
+    code = 4;
+  } else if (strcmp(cause, "brown-out") == 0) {
+    flag = avr->reset_flags.borf;
+    code = 3;
+  } else if (strcmp(cause, "power-on") == 0) {
+    flag = avr->reset_flags.porf;
+    code = 1;
+  } else {
+    return -1;
+  }
+  if (flag.reg == 0) {
+    return -1; /* this simavr does not know the chip's reset flags */
+  }
   uint8_t data[EEPROM_SIZE];
   eeprom_get(data); /* simavr's reset would leave EEPROM as it was, but do not rely on it */
   avr_reset(avr);
   eeprom_set(data);
+  avr_regbit_set(avr, flag);
+  restart_pin_drivers();
   memset(pulse, 0, sizeof pulse);
-  log_event('R', 0);
+  log_event('R', code);
+  return 0;
 }
 
 /* ------------------------------------------------------------------ control channel */
@@ -544,9 +598,12 @@ static void handle_command(char *line) {
     printf("ok\n");
   } else if (strncmp(line, "rc ", 3) == 0) {
     rc_command(line + 3);
-  } else if (strcmp(line, "reset") == 0) {
-    emulated_reset();
-    printf("ok\n");
+  } else if (strcmp(line, "reset") == 0 || strncmp(line, "reset ", 6) == 0) {
+    if (emulated_reset(line[5] == ' ' ? line + 6 : "") == 0) {
+      printf("ok\n");
+    } else {
+      printf("error usage: reset [external|watchdog|brown-out|power-on]\n");
+    }
   } else if (strcmp(line, "eeprom") == 0) {
     uint8_t data[EEPROM_SIZE];
     eeprom_get(data);

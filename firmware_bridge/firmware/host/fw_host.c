@@ -91,12 +91,13 @@ void fwh_create(void *mem) {
   h->hal.pwm_sync = hal_pwm_sync;
 }
 
-void fwh_boot(void *mem, uint32_t boot_id, uint32_t now_ms) {
+void fwh_boot(void *mem, uint32_t boot_id, uint8_t reset_cause, uint32_t now_ms) {
   fwh_t *h = (fwh_t *)mem;
   h->encoder = 0;
   h->pwm[0] = 0;
   h->pwm[1] = 0;
-  fw_core_init(&h->core, &h->hal, boot_id, now_ms);
+  h->tx_len = 0; /* a reset loses what the UART had still to send (a previous boot's HELLO) */
+  fw_core_init(&h->core, &h->hal, boot_id, reset_cause, now_ms);
   h->booted = 1;
 }
 

@@ -320,6 +320,7 @@ static void send_hello(fw_core_t *core) {
   hello.fw_minor = (uint8_t)CARRT_FW_MINOR;
   hello.fw_patch = (uint8_t)CARRT_FW_PATCH;
   hello.config_from_storage = core->config.persist;
+  hello.reset_cause = core->reset_cause;
   carrt_pack_hello(&hello, payload);
   send_frame(core, CARRT_MSG_HELLO, payload, CARRT_MSG_HELLO_SIZE);
 }
@@ -576,13 +577,17 @@ static void on_frame(fw_core_t *core, const fw_frame_t *frame, uint32_t now_ms) 
 
 /* ------------------------------------------------------------------ public API */
 
-void fw_core_init(fw_core_t *core, const fw_hal_t *hal, uint32_t boot_id, uint32_t now_ms) {
+void fw_core_init(fw_core_t *core, const fw_hal_t *hal, uint32_t boot_id, uint8_t reset_cause,
+                  uint32_t now_ms) {
   memset(core, 0, sizeof *core);
   core->hal = *hal;
   fw_rx_init(&core->rx);
   fw_config_defaults(&core->config);
   (void)load_config(core);
   core->boot_id = boot_id;
+  core->reset_cause = reset_cause <= (uint8_t)CARRT_RESET_CAUSE_WATCHDOG
+                          ? reset_cause
+                          : (uint8_t)CARRT_RESET_CAUSE_UNKNOWN;
   core->state = CARRT_STATE_DISARMED;
   core->reason = CARRT_REASON_BOOT;
   core->arm_refusal = CARRT_ARM_REFUSAL_NONE;

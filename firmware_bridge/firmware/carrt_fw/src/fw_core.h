@@ -57,6 +57,7 @@ typedef struct fw_core {
   fw_rx_t rx;
   carrt_config_t config; /* config.persist: 1 when it came from / was written to storage */
   uint32_t boot_id;
+  uint8_t reset_cause;   /* CARRT_RESET_CAUSE_*: why the board last started, for HELLO */
   uint8_t state;
   uint8_t reason;
   uint8_t arm_refusal;
@@ -85,8 +86,10 @@ typedef struct fw_core {
 } fw_core_t;
 
 /* Boot: defaults or stored config, neutral outputs, DISARMED(BOOT), HELLO sent. The HAL struct
- * is copied. */
-void fw_core_init(fw_core_t *core, const fw_hal_t *hal, uint32_t boot_id, uint32_t now_ms);
+ * is copied; reset_cause (CARRT_RESET_CAUSE_*, from the MCU's reset flags) goes into every
+ * HELLO of this boot. */
+void fw_core_init(fw_core_t *core, const fw_hal_t *hal, uint32_t boot_id, uint8_t reset_cause,
+                  uint32_t now_ms);
 
 /* Feed bytes read from the serial port; frames are handled as soon as they complete. */
 void fw_core_rx(fw_core_t *core, const uint8_t *data, uint16_t len, uint32_t now_ms);

@@ -5,7 +5,7 @@
 
 #include <stdint.h>
 
-#define CARRT_PROTOCOL_HASH 0xAF8CF4F4UL
+#define CARRT_PROTOCOL_HASH 0xCB1E91D6UL
 #define CARRT_SCALE 10000
 #define CARRT_MAX_FRAME_DECODED 64
 #define CARRT_HEADER_SIZE 3
@@ -60,6 +60,13 @@
 #define CARRT_CONTROLS_RECEIVER 1
 #define CARRT_CONTROLS_BOTH 2
 
+/* Why the board last started (``Hello.reset_cause``), from the MCU's reset flags. */
+#define CARRT_RESET_CAUSE_UNKNOWN 0
+#define CARRT_RESET_CAUSE_POWER_ON 1
+#define CARRT_RESET_CAUSE_EXTERNAL 2
+#define CARRT_RESET_CAUSE_BROWN_OUT 3
+#define CARRT_RESET_CAUSE_WATCHDOG 4
+
 #define CARRT_COMMAND_FLAGS_ESTOP 0x01
 #define CARRT_COMMAND_FLAGS_ARM 0x02
 #define CARRT_COMMAND_FLAGS_CLEAR 0x04
@@ -74,7 +81,7 @@
 #define CARRT_MSG_HELLO_REQUEST 0x01
 #define CARRT_MSG_HELLO_REQUEST_SIZE 0
 #define CARRT_MSG_HELLO 0x02
-#define CARRT_MSG_HELLO_SIZE 12
+#define CARRT_MSG_HELLO_SIZE 13
 #define CARRT_MSG_PING 0x03
 #define CARRT_MSG_PING_SIZE 4
 #define CARRT_MSG_PONG 0x04
@@ -94,7 +101,7 @@
 static inline int carrt_payload_size(uint8_t type_id) {
   switch (type_id) {
     case 0x01: return 0;
-    case 0x02: return 12;
+    case 0x02: return 13;
     case 0x03: return 4;
     case 0x04: return 8;
     case 0x10: return 9;
@@ -126,6 +133,7 @@ typedef struct carrt_hello {
   uint8_t fw_minor; /* firmware version, minor */
   uint8_t fw_patch; /* firmware version, patch */
   uint8_t config_from_storage; /* 1 when the PWM config came from persistent storage */
+  uint8_t reset_cause; /* why the board last started (see ResetCause) */
 } carrt_hello_t;
 
 static inline void carrt_pack_hello(const carrt_hello_t *msg, uint8_t *out) {
@@ -147,6 +155,8 @@ static inline void carrt_pack_hello(const carrt_hello_t *msg, uint8_t *out) {
     out[10] = (uint8_t)(v >> 0); }
   { uint8_t v = (uint8_t)msg->config_from_storage;
     out[11] = (uint8_t)(v >> 0); }
+  { uint8_t v = (uint8_t)msg->reset_cause;
+    out[12] = (uint8_t)(v >> 0); }
 }
 static inline void carrt_unpack_hello(const uint8_t *in, carrt_hello_t *msg) {
   msg->protocol_hash = (uint32_t)(((uint32_t)in[0] << 0) | ((uint32_t)in[1] << 8) | ((uint32_t)in[2] << 16) | ((uint32_t)in[3] << 24));
@@ -155,6 +165,7 @@ static inline void carrt_unpack_hello(const uint8_t *in, carrt_hello_t *msg) {
   msg->fw_minor = (uint8_t)(((uint8_t)in[9] << 0));
   msg->fw_patch = (uint8_t)(((uint8_t)in[10] << 0));
   msg->config_from_storage = (uint8_t)(((uint8_t)in[11] << 0));
+  msg->reset_cause = (uint8_t)(((uint8_t)in[12] << 0));
 }
 
 /* Ping (0x03, host->mcu) */
