@@ -62,7 +62,8 @@ from carrt.episodes.reader import list_episodes
 from carrt.errors import UserError
 from training.compare import DriveFailed, DriveSpec
 from training.config import IterateConfig, UsageError
-from training.iteration import _Parser, add_iteration_args, config_from, run_guarded
+from training.iteration import run_guarded
+from training.iteration_args import Parser, add_iteration_args, config_from
 
 
 class _Help(argparse.RawDescriptionHelpFormatter):
@@ -95,7 +96,7 @@ DIRL_STATUS = (
 
 
 def parse(argv: list[str] | None) -> tuple[argparse.Namespace, IterateConfig]:
-    p = _Parser(
+    p = Parser(
         prog="carrt-train", description=__doc__.split("\n")[0],
         epilog="examples:\n" + __doc__.split("\n\n")[2], formatter_class=_Help,
     )  # fmt: skip
