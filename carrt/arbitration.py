@@ -60,6 +60,10 @@ class ArbiterInputs:
     fallback_action: tuple[float, float] | None = None  # next step of the previous plan
     board_reason: int = 0  # messages.Reason, only used to explain a failsafe
     board_takeover: bool = False  # the board reports the receiver driving (a stick took over)
+    camera_lost_reason: str = ""  # the camera's own words for why it is lost
+    # the link saw a new boot id since the last tick: the board restarted, disarmed, and the
+    # loop names it (board_reboot_text); '' when it did not
+    board_rebooted: str = ""
 
 
 @dataclass(frozen=True)
@@ -131,6 +135,7 @@ class Arbiter:
         self._armed_since: float | None = None  # arm sent, board not yet seen ARMED
         self._board_armed_seen = False
         self._fallback_used = False
+        self._reboot_why = ""  # a reboot's line, the parked car's reason until the next arm
 
     # ------------------------------------------------------------------ state
     @property
@@ -177,13 +182,27 @@ class Arbiter:
         arm = disarm = clear = override = False
         refused = ""
 
+        # 0. A rebooted board is disarmed and re-validates its receiver: the car stops as a
+        # disarm named by the reboot, not as the "joystick disconnected" that follows from it.
+        if inp.board_rebooted and self._mode in (Mode.MANUAL, Mode.AUTO):
+            disarm = self._disarm(inp.board_rebooted)
+        elif inp.board_rebooted and self._mode == Mode.DISARMED:
+            self._why = inp.board_rebooted
+        self._reboot_why = inp.board_rebooted or self._reboot_why
+
         # 1. Everything that latches ESTOP.
         if ev.estop:
             self._latch("e-stop button")
         if not js.connected and self._mode in (Mode.MANUAL, Mode.AUTO):
-            self._latch("joystick disconnected")
+            if js.through_board and inp.telemetry_age_s > self.max_telemetry_age_s:
+                # the transmitter is read through a board that stopped talking: the board's
+                # watchdog stops the car; the host follows it down (a reboot is then named)
+                disarm = self._disarm("board silent: the transmitter is read through it")
+            else:
+                self._latch("joystick disconnected")
         if inp.camera_lost and self._mode == Mode.AUTO:
-            self._latch("camera lost")
+            why = inp.camera_lost_reason
+            self._latch(f"camera lost ({why})" if why else "camera lost")
         if board == State.ESTOP:
             if self._clear_since is None:
                 self._latch("the board reports e-stop")
@@ -230,6 +249,7 @@ class Arbiter:
                 else:
                     self._mode = Mode.MANUAL
                     self._armed_since, self._board_armed_seen = inp.now, False
+                    self._reboot_why = ""
                     arm = True
             elif ev.toggle_auto:
                 refused = "auto refused: arm first"
@@ -311,23 +331,32 @@ class Arbiter:
             return stale
         return ""
 
-    def _staleness(self, inp: ArbiterInputs) -> str:
+    def _staleness(self, inp: ArbiterInputs, measured: bool = True) -> str:
+        """Why AUTO cannot drive now; '' when it can. A refusal (one per press) says how old;
+        the neutral reason of a tick (`measured=False`) names only the limit, so it stays the
+        same tick after tick and the person is told once (the loop's fault line has the age)."""
         if inp.camera_lost:
             return "camera lost"
         if inp.frame_age_s is None:
             return "no camera frame yet"
         if inp.frame_age_s > self.max_frame_age_s:
-            return f"camera frame {inp.frame_age_s * 1000:.0f} ms old"
+            if measured:
+                return f"camera frame {inp.frame_age_s * 1000:.0f} ms old"
+            return f"camera frame older than {self.max_frame_age_s * 1000:.0f} ms"
         if inp.telemetry_age_s > self.max_telemetry_age_s:
             if math.isinf(inp.telemetry_age_s):
                 return "no telemetry from the board yet"
-            return f"telemetry {inp.telemetry_age_s * 1000:.0f} ms old"
+            if measured:
+                return f"telemetry {inp.telemetry_age_s * 1000:.0f} ms old"
+            return f"telemetry older than {self.max_telemetry_age_s * 1000:.0f} ms"
         return ""
 
     def _command(self, inp: ArbiterInputs, board: State) -> tuple[float, float, str, str]:
         if self._mode == Mode.ESTOP:
             return 0.0, 0.0, "neutral", f"e-stop: {self._estop_reason}"
         if self._mode == Mode.DISARMED:
+            if self._reboot_why:  # its receiver re-validating is part of it, not news
+                return 0.0, 0.0, "neutral", self._reboot_why
             if not inp.joystick.connected:
                 return 0.0, 0.0, "neutral", "no joystick connected"
             if board == State.FAILSAFE and self._clear_since is None:
@@ -335,7 +364,7 @@ class Arbiter:
             return 0.0, 0.0, "neutral", self._why
         if self._mode == Mode.MANUAL:
             return inp.joystick.steering, inp.joystick.throttle, "human", ""
-        stale = self._staleness(inp)
+        stale = self._staleness(inp, measured=False)
         if stale:
             return 0.0, 0.0, "neutral", stale
         if inp.plan_action is not None:

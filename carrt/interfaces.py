@@ -91,6 +91,9 @@ class JoystickState:
     throttle: float  # [-1, 1], after deadzone, + forward
     neutral_since_connect: bool  # every mapped axis has been seen at neutral since (re)connect
     events: JoystickEvents = field(default_factory=JoystickEvents)
+    # the controls are read through the board (the RC receiver): when the board goes silent
+    # they go with it, and that is the board's failsafe, not a pad pulled out
+    through_board: bool = False
 
     @property
     def sticks_moved(self) -> bool:
@@ -213,6 +216,10 @@ class EpisodeSink(Protocol):
 
     def end(self, reason: str) -> None: ...
 
+    def event(self, kind: str, detail: dict[str, Any]) -> None:
+        """Something that happened to the car in this episode (a board reboot), kept with it."""
+        ...
+
     @property
     def dropped(self) -> int: ...
 
@@ -248,3 +255,6 @@ class LiveStatus:
     telemetry_age_s: float = float("inf")
     link_counters: dict[str, Any] = field(default_factory=dict)  # a copy, taken at the tick
     alert: str = ""  # what the person must know now (recording failed: the disk is full)
+    # the session's latest fault and board lines (camera stale, board rebooted), newest last,
+    # each with the loop's clock time it was said at
+    notices: tuple[tuple[float, str], ...] = ()

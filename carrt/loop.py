@@ -30,6 +30,7 @@ from carrt.arbitration import Arbiter, ArbiterInputs, Decision
 from carrt.camera import preprocess
 from carrt.config import CarConfig
 from carrt.episode_rule import EpisodeRule
+from carrt.faults import PartsWatch, board_metadata
 from carrt.frame_lock import FrameLock
 from carrt.interfaces import (
     Board,
@@ -72,6 +73,7 @@ class Tick:
     plan_action: tuple[float, float] | None = None
     fallback_action: tuple[float, float] | None = None
     decision: Decision | None = None
+    rebooted: str = ""  # the board rebooted since the last tick: the line naming it
     executed: tuple[float, float] = (0.0, 0.0)
     noisy: bool = False
     sent_at: float = math.nan
@@ -154,6 +156,8 @@ class ControlLoop:
         self.live = LiveStatus()  # replaced whole every tick: safe to read from other threads
         self._was_driving = False
         self.log = log
+        self.watch = PartsWatch(parts, config)  # faults and reboots, said once each
+        self._reboot_ended = False
 
     # ------------------------------------------------------------------ public
     def stop(self) -> None:
@@ -207,6 +211,9 @@ class ControlLoop:
         parts = self.parts
         tick.frame = parts.camera.latest()
         tick.joystick = parts.joystick.poll()
+        # read after the sticks: a receiver that looks gone because its board rebooted is seen
+        # with the reboot that explains it (the HELLO arrives before the new boot's telemetry)
+        tick.rebooted = self.watch.board_reboot(parts.clock.now())
         tick.telemetry = parts.link.telemetry
         tick.collided = parts.collisions() if parts.collisions is not None else False
         if tick.collided:
@@ -254,9 +261,12 @@ class ControlLoop:
                 fallback_action=tick.fallback_action,
                 board_reason=tick.telemetry.telemetry.reason if tick.telemetry else 0,
                 board_takeover=receiver_drives,
+                camera_lost_reason=getattr(parts.camera, "lost_reason", None) or "",
+                board_rebooted=tick.rebooted,
             )
         )
-        self._report(decision)
+        self._report(decision, said=tick.rebooted)
+        self.watch.faults_of(tick)
         self._count_laps(decision.mode, tick.joystick.events.lap)
         if decision.mode != Mode.ESTOP:
             self._collision_ended = False  # a later e-stop by hand is not this collision
@@ -302,19 +312,21 @@ class ControlLoop:
             plan=self.plans.plan, sections_s=sections.times, telemetry_age_s=link.telemetry_age_s(),
             board_state=getattr(link.board_state, "name", str(link.board_state)),
             link_counters=dict(vars(link.counters)),  # a few ints: a copy costs ~1 µs
-            alert=self._alert(),
+            alert=self._alert(), notices=self.watch.notices,
         )  # fmt: skip
         mode_name = decision.mode.name
         self.summary.modes_s[mode_name] = self.summary.modes_s.get(mode_name, 0.0) + self.period
 
-    def _report(self, decision: Decision) -> None:
-        """Tell the human what changed and why a press was refused (once per change)."""
+    def _report(self, decision: Decision, said: str = "") -> None:
+        """Tell the human what changed and why a press was refused (once per change); a mode
+        whose reason is the line just `said` (a reboot's) is not said twice."""
         message = decision.mode.name
         if decision.reason:
             message += f" (neutral: {decision.reason})"
         if message != self._last_message:
             self._last_message = message
-            self.log(f"mode {message}")
+            if not (said and said in message):
+                self.log(f"mode {message}")
         if decision.refused:
             self.log(f"refused: {decision.refused}")
 
@@ -335,8 +347,14 @@ class ControlLoop:
         if tick.joystick.events.toggle_record:
             rule.toggle_pause()
         board_armed = self.parts.link.board_state == m.State.ARMED
+        if tick.rebooted and rule.recording:
+            # the episode ends with the reboot in it; the next (after the re-arm) names the boot
+            boot = board_metadata(self.watch.boot) or {}
+            sink.event("board_reboot", {"text": tick.rebooted, **boot})
+            self._reboot_ended = True
         if rule.should_begin(decision.mode, board_armed, tick.image is not None):
-            sink.begin({**self.episode_metadata, "started_mode": decision.mode.name})
+            meta = {**self.episode_metadata, "board": board_metadata(self.watch.boot)}
+            sink.begin({**meta, "started_mode": decision.mode.name})
             rule.recording = True
             self.summary.episodes += 1
         if not rule.recording:
@@ -347,10 +365,11 @@ class ControlLoop:
             else:
                 self.summary.dropped_steps += 1
                 self._write_failed(getattr(sink, "error", None))
-        if rule.should_end(decision.mode):
+        if rule.should_end(decision.mode) or (self._reboot_ended and rule.recording):
             sink.end(self._end_reason(decision.mode))
             rule.recording = False
             self._collision_ended = False
+        self._reboot_ended = False
 
     def _alert(self) -> str:
         error = self.summary.write_error
@@ -393,8 +412,12 @@ class ControlLoop:
         )
 
     def _end_reason(self, mode: Mode) -> str:
-        failsafe = self.parts.link.board_state == m.State.FAILSAFE
-        return LapCounter.end_reason(mode, self._collision_ended, failsafe)
+        if self._reboot_ended:
+            return "reboot"
+        link = self.parts.link  # a silent board has stopped the car by its watchdog
+        silent = link.telemetry_age_s() > self.config.encoder.max_age_s
+        return LapCounter.end_reason(mode, self._collision_ended,
+                                     link.board_state == m.State.FAILSAFE or silent)  # fmt: skip
 
     def _count_laps(self, mode: Mode, mark: bool) -> None:
         """The summary's laps and collisions, by the rule carrt report uses (carrt/laps.py)."""

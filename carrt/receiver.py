@@ -149,7 +149,8 @@ class ReceiverControls:
             self._arm_hold.update(False, now, 0.0)
             self._auto_hold.update(False, now, 0.0)
             self._arm_armed = False
-            return with_passed_on(JoystickState(False, 0.0, 0.0, False), self.radio)
+            lost = JoystickState(False, 0.0, 0.0, False, through_board=True)
+            return with_passed_on(lost, self.radio)
         if not self._was_connected:
             self._was_connected, self._neutral_seen = True, False
         steering, throttle = self.sticks_from(tel)
@@ -222,6 +223,7 @@ class PadAndReceiver:
             throttle=sticks.throttle,
             neutral_since_connect=pad.neutral_since_connect and rx.neutral_since_connect,
             events=events,
+            through_board=pad.connected and not rx.connected,
         )
 
 

@@ -223,7 +223,7 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             stack.callback(view.close)
         rig = rigs.open_rig(stack, args, config, driving=policy is not None)
         link = rig.link
-        ack = link.send_config(car_config.board_config(config))
+        ack = link.keep_config(car_config.board_config(config))  # and after every reboot
         if ack.result != 0:
             raise UserError(
                 f"board refused the PWM config from the car config (result {ack.result}): "
@@ -309,6 +309,8 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
 
 
 def _episode_metadata(config, policy, link: BoardLink, mode: str) -> dict[str, Any]:
+    from carrt.faults import board_metadata
+
     board = link.board
     return {
         "carrt_version": __version__,
@@ -326,9 +328,7 @@ def _episode_metadata(config, policy, link: BoardLink, mode: str) -> dict[str, A
             "metadata": dict(policy.metadata),
             "provider": policy.provider,
         },
-        "board": None
-        if board is None
-        else {"firmware": ".".join(map(str, board.firmware_version)), "boot_id": board.boot_id},
+        "board": board_metadata(board),  # the loop names each episode's own boot
     }
 
 

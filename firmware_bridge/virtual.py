@@ -147,6 +147,11 @@ class VirtualBoard:
         with self._lock:
             self._receiver.set(steer_us, throttle_us, switch_us)
 
+    def receiver_off(self) -> None:
+        """The RC receiver's pins go quiet (transmitter off, out of range, a wire loose)."""
+        with self._lock:
+            self._receiver.off()
+
     def _service_host_side(self, now_ms: int) -> None:
         if self._master is None:
             return

@@ -147,8 +147,9 @@ def test_override_respects_the_deadzone_margin():
     ("fields", "words"),
     [
         ({"frame_age_s": None}, "no camera frame"),
-        ({"frame_age_s": 0.16}, "camera frame 160 ms old"),
-        ({"telemetry_age_s": 0.11}, "telemetry 110 ms old"),
+        ({"frame_age_s": 0.16}, "camera frame older than 150 ms"),
+        ({"frame_age_s": 0.9}, "camera frame older than 150 ms"),  # the same words: said once
+        ({"telemetry_age_s": 0.11}, "telemetry older than 100 ms"),
     ],
 )
 def test_stale_inputs_in_auto_give_neutral_with_a_reason(fields, words):

@@ -192,3 +192,24 @@ def test_a_bad_view_address_or_a_port_in_use_is_one_line_and_exit_2():
         done = _carrt(*sim, "--view", str(taken.getsockname()[1]))
     assert done.returncode == 2, done.stderr
     assert done.stderr.strip().count("\n") == 0 and "cannot listen" in done.stderr, done.stderr
+
+
+def test_the_page_shows_the_sessions_fault_and_reboot_lines():
+    loop = _Loop()
+    rebooted = "board rebooted (brown-out; boot id 0000002a → 0000002b): it gets the car's config"
+    loop.live = replace(
+        loop.live, deadline=100.0, notices=((97.5, "camera stale: newest frame 180 ms old"),
+                                            (99.0, rebooted)),
+    )  # fmt: skip
+    server = ViewServer("0")
+    server.serve(*LiveFeed(lambda: loop.live, loop.estop, command="drive").routes())
+    try:
+        got = json.loads(request(f"http://127.0.0.1:{server.port}/state.json")[1])
+        assert got["notices"] == [[2.5, "camera stale: newest frame 180 ms old"], [1.0, rebooted]]
+        with chromium() as browser:
+            browser.get(server.url)
+            text = _wait(lambda: _text(browser, "notices"), 10, "the page lists the lines")
+            assert "2.5 s ago" in text and "camera stale: newest frame 180 ms old" in text
+            assert "1.0 s ago" in text and rebooted in text
+    finally:
+        server.close()

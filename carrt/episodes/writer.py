@@ -39,7 +39,7 @@ from carrt.episodes.format import write_all  # a module name of its own: tests s
 from carrt.interfaces import HORIZON, IMAGE_SHAPE, Clock, Step
 
 _FULL_ERRNOS = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
-_RESERVED = {"schema", "format", "start", "end", "end_reason", "counts", "writer"}
+_RESERVED = {"schema", "format", "start", "end", "end_reason", "counts", "writer", "events"}
 
 
 @dataclasses.dataclass
@@ -169,6 +169,14 @@ class EpisodeWriter:
             self._drop()
         return not full
 
+    def event(self, kind: str, detail: dict[str, Any]) -> None:
+        """Something that happened to the car during this episode (a board reboot): kept in
+        meta.json's "events" with the step it came before and its time, written at once (a
+        crash right after it still leaves it on disk). Returns at once."""
+        if not self._open:
+            return
+        self._put(("event", self._serial, kind, dict(detail), time.time(), self._clock()))
+
     def end(self, reason: str) -> None:
         """End the episode: the writer syncs it and writes the final metadata. Returns at once."""
         if not self._open:
@@ -235,6 +243,8 @@ class EpisodeWriter:
                     self._step(ep, *item[1:])
                 elif item[0] == "begin":
                     ep = self._begin(*item[1:])
+                elif item[0] == "event":
+                    self._event(ep, *item[1:])
                 elif item[0] == "end":
                     self._end(ep, *item[1:])
                     ep = None
@@ -310,6 +320,15 @@ class EpisodeWriter:
         fmt.write_json_atomic(ep.path / fmt.SYNCED, {"steps": n})
         ep.synced = n
         self.synced = n
+
+    def _event(
+        self, ep: _Episode | None, serial: int, kind: str, detail: dict, wall: float, mono: float
+    ) -> None:
+        if ep is None or ep.serial != serial or ep.path is None or ep.failed:
+            return
+        events = ep.meta.setdefault("events", [])
+        events.append({"kind": kind, "step": ep.n, **_stamp(wall, mono), **detail})
+        fmt.write_json_atomic(ep.path / fmt.META, ep.meta)
 
     def _end(
         self, ep: _Episode | None, serial: int, reason: str, wall: float, mono: float, drops: int

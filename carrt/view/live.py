@@ -132,6 +132,8 @@ class LiveFeed:
                 "collisions": live.collisions,
                 "laps": live.laps,
                 "alert": live.alert,
+                # faults and board events, newest last: (seconds ago, the line as printed)
+                "notices": [[live.deadline - at, line] for at, line in live.notices],
             }
         )
 
