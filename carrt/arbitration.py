@@ -34,6 +34,7 @@ from firmware_bridge.timing import BOARD_GRACE_S
 """How long the board may lag a clear or an arm before the host stops waiting for it."""
 
 DEFAULT_ESTOP_WHY = "joystick: e-stop button pressed or pad removed"
+SILENT_BOARD_WHY = "board silent: the transmitter is read through it"
 
 
 def arm_hint(controls: Mapping[str, str], allow_auto: bool) -> str:
@@ -197,7 +198,7 @@ class Arbiter:
             if js.through_board and inp.telemetry_age_s > self.max_telemetry_age_s:
                 # the transmitter is read through a board that stopped talking: the board's
                 # watchdog stops the car; the host follows it down (a reboot is then named)
-                disarm = self._disarm("board silent: the transmitter is read through it")
+                disarm = self._disarm(SILENT_BOARD_WHY)
             else:
                 self._latch("joystick disconnected")
         if inp.camera_lost and self._mode == Mode.AUTO:
@@ -358,6 +359,9 @@ class Arbiter:
             if self._reboot_why:  # its receiver re-validating is part of it, not news
                 return 0.0, 0.0, "neutral", self._reboot_why
             if not inp.joystick.connected:
+                silent = inp.telemetry_age_s > self.max_telemetry_age_s
+                if inp.joystick.through_board and silent:
+                    return 0.0, 0.0, "neutral", SILENT_BOARD_WHY
                 return 0.0, 0.0, "neutral", "no joystick connected"
             if board == State.FAILSAFE and self._clear_since is None:
                 return 0.0, 0.0, "neutral", f"{_failsafe_text(inp.board_reason)}: clear, then arm"

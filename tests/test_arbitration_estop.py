@@ -10,6 +10,7 @@ AUTO are in test_arbitration.py.
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import pytest
 from arbiter_rig import Rig, pad
@@ -209,3 +210,38 @@ def test_estop_fast_path_then_button_edge_is_one_latch():
     rig.tick(pad(clear=True))
     rig.arbiter.estop("again")
     assert len(rig.estops) == 2  # a new latch after a clear calls through again
+
+
+# ----------------------------------------------------------------------------- a rebooted board
+REBOOTED = "board rebooted (brown-out; boot id 00000001 → 00000002): ..."
+
+
+def test_a_reboot_disarms_with_its_line_and_keeps_it_until_the_next_arm():
+    rig = Rig()
+    rig.auto()
+    gone = replace(pad(), connected=False, through_board=True)  # its receiver re-validating
+    d = rig.tick(gone, board_rebooted=REBOOTED, board_state=State.DISARMED)
+    assert (d.mode, d.disarm_request, d.reason) == (Mode.DISARMED, True, REBOOTED)
+    assert (d.steering, d.throttle) == (0.0, 0.0)
+    d = rig.tick(gone, board_state=State.DISARMED)
+    assert d.mode == Mode.DISARMED and d.reason == REBOOTED, "not 'no joystick connected'"
+    rig.board = State.DISARMED
+    assert rig.tick(pad(arm=True)).mode == Mode.MANUAL
+    rig.tick(pad(arm=True))  # disarmed by the person: the reboot is no longer the reason
+    assert REBOOTED not in rig.tick(pad()).reason
+
+
+def test_controls_read_through_a_silent_board_disarm_and_a_pulled_pad_estops():
+    rig = Rig()
+    rig.auto()
+    through = replace(pad(), connected=False, through_board=True)
+    d = rig.tick(through, telemetry_age_s=0.3)
+    assert d.mode == Mode.DISARMED and "board silent" in d.reason
+    rig = Rig()
+    rig.auto()
+    d = rig.tick(through, telemetry_age_s=0.01)  # the board talks: the receiver itself is gone
+    assert d.mode == Mode.ESTOP and rig.arbiter.estop_reason == "joystick disconnected"
+    rig = Rig()
+    rig.auto()
+    d = rig.tick(pad(connected=False), telemetry_age_s=0.3)  # a pad: the dead-man, always
+    assert d.mode == Mode.ESTOP
