@@ -64,6 +64,10 @@ def gstreamer_available() -> bool:
     return False
 
 
+# A laptop has no camera at /dev/video0: the first `carrt drive` there should name the way on.
+NO_CAMERA_HINT = "no camera here? --sim drives the built-in simulator, --camera FILE a video"
+
+
 def parse_source(source: str) -> CameraSource:
     """Classify config.source; raise UserError when it cannot name anything usable."""
     text = source.strip()
@@ -72,7 +76,7 @@ def parse_source(source: str) -> CameraSource:
         return CameraSource("device", int(text), device_api)
     if text.startswith("/dev/video"):
         if not os.path.exists(text):
-            raise UserError(f"camera source {text}: no such file or device")
+            raise UserError(f"camera source {text}: no such file or device ({NO_CAMERA_HINT})")
         return CameraSource("device", text, device_api)
     if "!" in text:
         if "appsink" not in text:
@@ -260,7 +264,8 @@ class OpenCVCamera:
             if src.kind == "device":
                 raise UserError(
                     f"camera source {self.config.source}: cannot open {src.describe()} "
-                    "(not connected, or in use by another program? see `ls /dev/video*`)"
+                    "(not connected, or in use by another program? see `ls /dev/video*`; "
+                    f"{NO_CAMERA_HINT})"
                 )
             if src.kind == "gstreamer":
                 raise UserError(

@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import os
 import time
+import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -49,6 +50,32 @@ def select_providers(preferred: Sequence[str], available: Sequence[str]) -> list
     if CPU in chosen:
         chosen.remove(CPU)
     return [*chosen, CPU]
+
+
+def refuse_checkpoint(path: Path) -> None:
+    """A training checkpoint handed where an ONNX model belongs is a common slip (`runs/iter1/
+    policy.pt` beside `policy.onnx`): name it, and the command that turns it into a model,
+    instead of onnxruntime's protobuf parse error, which reads like a corrupt file. torch.save
+    writes a zip archive holding `data.pkl` (or, in its legacy format, a pickle)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+            is_zip = head == b"PK\x03\x04"
+            checkpoint = (is_zip and zipfile.is_zipfile(path) and _holds_pickle(path)) or (
+                head[:1] == b"\x80" and path.suffix in (".pt", ".pth", ".ckpt")
+            )
+    except OSError:
+        return  # the loader's own error names an unreadable file
+    if checkpoint:
+        raise UserError(
+            f"model {path}: a PyTorch training checkpoint, not an ONNX model: export it with "
+            f"carrt-export {path} -o {path.with_suffix('.onnx')}"
+        )
+
+
+def _holds_pickle(path: Path) -> bool:
+    with zipfile.ZipFile(path) as archive:
+        return any(name.endswith("data.pkl") for name in archive.namelist())
 
 
 def _provider_options(name: str) -> tuple[str, dict[str, Any]] | str:
@@ -100,6 +127,7 @@ class OnnxPolicy:
         control_period_s: float | None = CONTROL_PERIOD_S,
     ) -> None:
         self.path = resolve_model(path)
+        refuse_checkpoint(self.path)
         self.size_bytes = self.path.stat().st_size
         self.sha256 = file_sha256(self.path)
         self.available_providers = list(ort.get_available_providers())

@@ -361,3 +361,11 @@ def test_preprocess_refuses_non_rgb_uint8():
         preprocess(np.zeros((10, 10), np.uint8), CameraConfig())
     with pytest.raises(ValueError):
         preprocess(np.zeros((10, 10, 3), np.float32), CameraConfig())
+
+
+def test_no_camera_on_this_machine_names_the_simulator():
+    with pytest.raises(UserError, match=r"/dev/video97: no such file .*--sim drives the built-in"):
+        parse_source("/dev/video97")
+    camera = OpenCVCamera(CameraConfig(source="0"), opener=FakeCapture(opened=False))
+    with pytest.raises(UserError, match=r"--sim drives the built-in simulator"):
+        camera.start()

@@ -249,3 +249,8 @@ def test_nan_in_a_setting_is_one_line_and_exit_2(tmp_path, command):
     }[command]
     result = carrt(*args, "--set", "pwm.max_forward=nan")
     assert_one_line_error(result, "pwm.max_forward", "finite")
+
+
+def test_drive_on_a_machine_without_a_camera_names_the_simulator():
+    result = carrt("drive", "--model", "demo", "--camera", "/dev/video97")
+    assert_one_line_error(result, "/dev/video97", "--sim drives the built-in simulator")

@@ -303,3 +303,14 @@ def test_a_throttle_ceiling_on_a_file_that_is_no_policy_is_refused(tmp_path):
     with pytest.raises(UserError, match="no such file"):
         apply_throttle_ceiling(tmp_path / "missing.onnx", tmp_path / "out.onnx", 0.8)
     assert not (tmp_path / "out.onnx").exists()
+
+
+def test_a_checkpoint_given_as_the_model_is_named_with_the_command_that_exports_it(checkpoint):
+    result = subprocess.run(
+        [sys.executable, "-m", "carrt", "drive", "--model", str(checkpoint), "--sim"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert "a PyTorch training checkpoint, not an ONNX model" in result.stderr
+    assert f"carrt-export {checkpoint} -o {checkpoint.with_suffix('.onnx')}" in result.stderr
+    assert "protobuf" not in result.stderr.lower()
