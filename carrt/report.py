@@ -7,8 +7,9 @@ e-stopped and reset spans several episodes) or each episode alone with --per-epi
 Lap times come only from lap marks (the lap button, pressed each time the car crosses the line,
 the start included: N marks make N−1 laps). Without marks there are no lap times: the report says
 so rather than guessing from distance. A trial goes on across an episode that ended in a
-collision, an e-stop or a failsafe (the car was reset and re-armed); a deliberate disarm closes
-it, so the next episode's first mark starts a lap and closes none (carrt/laps.py, the rule the
+collision, an e-stop or a failsafe (the car was reset and re-armed) within one drive (its
+session; in the simulator, its placement); a deliberate disarm or another drive closes it, so
+the next episode's first mark starts a lap and closes none (carrt/laps.py, the rule the
 loop's summary and the simulator count by too). Time is the measured frame capture times;
 excluded are (a) the stretches after a collision or e-stop while the car is DISARMED or in ESTOP,
 until it is driving again (the reset), and (b) anything between two episodes, which was not
@@ -78,6 +79,15 @@ def _timeline(episodes: list[Episode]) -> dict[str, np.ndarray]:
     }
 
 
+def session_of(ep: Episode) -> tuple:
+    """Which drive an episode belongs to: its session id (one per `carrt teleop/drive` run) and,
+    in the simulator, its obstacle placement. A trial never spans two: a folder of several
+    drives is several trials, not one whose laps run from one drive's last mark into the next
+    drive's first."""
+    sim = ep.meta.get("sim") or {}
+    return ep.meta.get("session_id"), sim.get("layout"), sim.get("track_seed")
+
+
 def lap_times(episodes: list[Episode]) -> dict[str, Any]:
     """Times between consecutive lap marks, reset time excluded; notes say what was assumed."""
     line = _timeline(episodes)
@@ -92,6 +102,8 @@ def lap_times(episodes: list[Episode]) -> dict[str, Any]:
         first, last = int(line["ep"][a]), int(line["ep"][b])
         if any(episodes[e].end_reason not in TRIAL_GOES_ON for e in range(first, last)):
             continue  # a trial ended in between: b starts the next one
+        if len({session_of(episodes[e]) for e in range(first, last + 1)}) > 1:
+            continue  # another session (another drive, another placement): another trial
         dt, keep = line["dt"][a:b], line["counted"][a:b]
         laps.append(float(dt[keep].sum()))
         resets.append(float(dt[~keep].sum()))

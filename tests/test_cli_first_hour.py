@@ -16,6 +16,7 @@ from carrt.joystick import PygameJoystick
 from carrt.loop import ControlLoop, LoopParts
 from carrt.sim.keyboard import CONTROLS, KeyboardPad
 from carrt.sim.metrics import SimMetrics, format_metrics
+from firmware_bridge.link_types import LinkCounters
 from firmware_bridge.messages import State
 
 
@@ -71,7 +72,7 @@ def test_a_pad_names_its_buttons_from_its_preset(preset, arm, auto):
 
 
 def test_the_loop_hands_the_joysticks_keys_to_the_arbiter():
-    link = types.SimpleNamespace(estop=lambda: None)
+    link = types.SimpleNamespace(estop=lambda: None, counters=LinkCounters())  # a Board's part
     joystick = types.SimpleNamespace(controls={"arm": "the red key", "auto": "the blue key"})
     parts = LoopParts(clock=None, camera=None, link=link, joystick=joystick)
     loop = ControlLoop(parts, CarConfig(), allow_auto=True, record=False)

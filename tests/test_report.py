@@ -118,3 +118,21 @@ def test_laps_per_minute_are_the_timed_laps_over_the_minutes_of_driving(tmp_path
     parked = report.run_metrics("p", [read_episode(write_episode(tmp_path, build([(9, D, 0)])))])
     assert parked["laps_per_min"] is None
     assert report.render_table([parked]).splitlines()[2].split()[-1] == "-"
+
+
+def test_two_drives_in_one_folder_are_two_trials_not_one(tmp_path):
+    """Each drive (session) of the simulator ends in a collision; its laps never run on into the
+    next drive's, whatever placement it drove (the 2.80 s lap on a 13 m track of issue 68)."""
+    from episode_factory import metadata
+
+    def drive(name, session, seed, t0):
+        meta = {**metadata(), "session_id": session, "sim": {"layout": "hard", "track_seed": seed}}
+        steps = build([(10, M, 1.0)], t0=t0, lap={2, 8})
+        return read_episode(write_episode(tmp_path / name, steps, reason="collision", meta=meta))
+
+    eps = [drive("a", "s1", 200, 1000.0), drive("b", "s2", 201, 2000.0)]
+    r = report.run_metrics("folder", eps)
+    assert r["laps_s"] == pytest.approx([0.6, 0.6]), "one lap in each drive, none between them"
+    assert not any("spans the end of" in note for note in r["notes"])
+    same = [drive("c", "s3", 200, 3000.0), drive("d", "s3", 200, 4000.0)]
+    assert report.run_metrics("one drive", same)["laps_s"] == pytest.approx([0.6, 0.1 + 0.2, 0.6])

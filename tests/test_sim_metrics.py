@@ -101,6 +101,11 @@ def test_time_for_five_laps_excludes_reset_time():
     assert compute_metrics(t, x, y, v, progress, None, lap, L, n_laps=2).time_for_laps == (
         pytest.approx(20.0)
     )
+    assert "time for 5 laps 50.0 s (resets excluded)" in format_metrics(m_all := compute_metrics(
+        t, x, y, v, progress, None, lap, L))  # fmt: skip
+    assert m_all.laps == 6, "six laps driven beside the time for five: the label says five"
+    two = compute_metrics(t, x, y, v, progress, None, lap, L, n_laps=2)
+    assert "time for 2 laps 20.0 s" in format_metrics(two)
 
 
 def test_empty_trajectory_is_all_zeros():

@@ -41,6 +41,7 @@ class SimMetrics:
     driving_time: float  # s
     distance: float  # m driven (path length, resets' jumps excluded)
     along_track: float = math.nan  # m of progress along the track over that same path; nan: unknown
+    laps_timed: int = 5  # time_for_laps is the time for this many laps (the paper's five)
     # derived, stored (not properties) so that dataclasses.asdict and the saved JSON carry them
     laps_per_min: float = field(init=False)  # laps per minute of driving time
     lap_time_mean: float | None = field(init=False)  # s, mean of lap_times; None without one
@@ -133,6 +134,7 @@ def compute_metrics(
         driving_time=driving_time,
         distance=distance,
         along_track=along_track,
+        laps_timed=n_laps,
     )
 
 
@@ -206,7 +208,7 @@ def format_metrics(m: SimMetrics) -> str:
             f"racing           {m.laps_per_min:.2f} laps/min of driving, mean lap {mean_lap}, "
             f"progress {per_metre} m per m driven",
             f"collisions       {m.collisions}, interventions {m.interventions}",
-            f"time for laps    {timed} (resets excluded)",
+            f"time for {m.laps_timed} laps {timed} (resets excluded)",
             f"distance         {m.distance:.1f} m in {m.driving_time:.1f} s of driving",
         ]
     )
