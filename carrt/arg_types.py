@@ -57,3 +57,16 @@ def parse_int_list(text: str, what: str) -> list[int]:
     if any(v < 0 for v in out):
         raise UserError(f"--{what}: seeds are >= 0, got {text!r}")
     return out
+
+
+def format_int_list(values: list[int]) -> str:
+    """[100, 101, 102, 120] → '100-102,120': parse_int_list's form, for messages."""
+    parts: list[str] = []
+    for v in sorted(set(values)):
+        if parts and "-" not in parts[-1][1:] and int(parts[-1]) == v - 1:
+            parts[-1] = f"{v - 1}-{v}"
+        elif parts and "-" in parts[-1][1:] and int(parts[-1].split("-")[1]) == v - 1:
+            parts[-1] = f"{parts[-1].split('-')[0]}-{v}"
+        else:
+            parts.append(str(v))
+    return ",".join(parts)

@@ -11,11 +11,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 
 from carrt import layouts
-from carrt.arg_types import finite_positive, parse_int_list
+from carrt.arg_types import finite_positive, format_int_list, parse_int_list
 from carrt.errors import UserError
+from carrt.model_contract import trained_on
+
+LOG = logging.getLogger(__name__)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -63,8 +67,16 @@ def run_eval(args: argparse.Namespace) -> int:
 
         path = resolve_model(args.model)
 
-        OnnxPolicy(path)  # refuses a model that breaks the contract, once, before any run
+        policy = OnnxPolicy(path)  # refuses a model that breaks the contract, before any run
         model = str(path)
+        seen = trained_on(policy.metadata, args.layout, tracks)
+        if seen:
+            LOG.warning(
+                f"{len(seen)} of the {len(tracks)} placements ({format_int_list(seen)}, layout "
+                f"{args.layout}) are ones {path.name} was trained on: on those the numbers say "
+                "how it repeats what it saw, not how it drives a place it never saw (choose on "
+                "validation 200-259, report on test 100-199)"
+            )
     if args.expert_intervene and model is None:
         raise UserError(
             "--expert-intervene needs --model (the expert cannot take over from itself)"

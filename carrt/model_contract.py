@@ -14,8 +14,10 @@ Metadata (ONNX metadata_props, all strings): the keys in REQUIRED_KEYS.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import json
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from carrt.errors import UserError
 
@@ -222,3 +224,30 @@ def validate_io(inputs: Sequence[TensorSpec], outputs: Sequence[TensorSpec], hor
         _check_tensor("input", by_name[spec.name], spec, horizon)
     for spec in want_out:
         _check_tensor("output", by_name[spec.name], spec, horizon)
+
+
+# ----------------------------------------------------------------------------- provenance
+# Which simulator placements the policy's training episodes came from, as JSON
+# {"layout": [track seeds]}: `carrt eval` on one of them measures recall, not driving, and says
+# so. Optional (a real car's episodes have none; older models lack the key).
+SIM_PLACEMENTS = "carrt.sim_placements"
+
+
+def sim_placements(metas: Iterable[Mapping[str, Any]]) -> dict[str, list[int]]:
+    """{layout: sorted track seeds} of the episodes' `sim` blocks (episode meta.json)."""
+    seen: dict[str, set[int]] = {}
+    for meta in metas:
+        sim = meta.get("sim") or {}
+        if "layout" in sim and "track_seed" in sim:
+            seen.setdefault(str(sim["layout"]), set()).add(int(sim["track_seed"]))
+    return {layout: sorted(seeds) for layout, seeds in sorted(seen.items())}
+
+
+def trained_on(metadata: Mapping[str, str], layout: str, tracks: Iterable[int]) -> list[int]:
+    """The given placements of `layout` that the model's training data came from."""
+    try:
+        placed = json.loads(metadata.get(SIM_PLACEMENTS) or "{}")
+    except json.JSONDecodeError:
+        return []
+    seen = set(placed.get(layout, [])) if isinstance(placed, dict) else set()
+    return sorted(t for t in tracks if t in seen)

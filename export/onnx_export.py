@@ -10,6 +10,7 @@ a model the car accepts; a refused export leaves whatever was there before untou
 from __future__ import annotations
 
 import io
+import json
 import os
 import warnings
 from dataclasses import dataclass, field
@@ -130,6 +131,8 @@ def build_metadata(ckpt: dict, horizon: int, exporter: str) -> dict[str, str]:
         "carrt.training_code_version": str(ckpt.get("code_version", "")),
         "carrt.exporter": exporter,
     }
+    if ckpt.get("sim_placements"):  # the simulator's placements it trained on: carrt eval warns
+        meta[mc.SIM_PLACEMENTS] = json.dumps(ckpt["sim_placements"], separators=(",", ":"))
     mc.validate_metadata(meta, CONTROL_PERIOD_S)
     return meta
 

@@ -303,3 +303,25 @@ def test_carrt_model_info_through_the_cli(tmp_path, capsys):
     assert cli.main(["model", "info", str(path)]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "input image is float32" in err
+
+
+def test_the_placements_a_model_was_trained_on_are_read_from_its_metadata():
+    import json
+
+    from carrt import model_contract as mc
+
+    metas = [{"sim": {"layout": "hard", "track_seed": 3}}, {"sim": {"layout": "hard",
+             "track_seed": 1}}, {"sim": {"layout": "easy", "track_seed": 1}}, {}]  # fmt: skip
+    placed = mc.sim_placements(metas)
+    assert placed == {"easy": [1], "hard": [1, 3]}
+    meta = {mc.SIM_PLACEMENTS: json.dumps(placed)}
+    assert mc.trained_on(meta, "hard", range(0, 5)) == [1, 3]
+    assert mc.trained_on(meta, "easy", [2]) == [] and mc.trained_on({}, "hard", [1]) == []
+    assert mc.trained_on({mc.SIM_PLACEMENTS: "not json"}, "hard", [1]) == []
+
+
+def test_a_list_of_placements_is_said_in_the_form_it_is_typed():
+    from carrt.arg_types import format_int_list, parse_int_list
+
+    for text in ("100-104,120", "5", "1,3,5-7", "200-259"):
+        assert format_int_list(parse_int_list(text, "tracks")) == text

@@ -489,3 +489,27 @@ def test_demo_policy_refines_its_last_network_with_dirl(sim_episodes, tmp_path, 
     asked, cfg = parse(seen[-1][2:])  # after `python training/iterate.py`
     assert asked.dirl and cfg.init == str(tmp_path / "il3")
     assert (cfg.reimitation_steps, cfg.world_model_steps, cfg.refine_steps) == (0, 3000, 300)
+
+
+def test_the_export_names_its_training_placements_and_carrt_eval_warns_on_them(runs, tmp_path):
+    import subprocess
+    import sys
+
+    import onnx
+
+    from carrt import model_contract as mc
+    out, _, _ = runs
+    _, saved = ck.load_policy(out / "policy.pt")
+    assert saved["sim_placements"] and set(saved["sim_placements"]) == {"easy"}
+    seeds = saved["sim_placements"]["easy"]
+    assert set(seeds) <= {0, 1} and len(seeds) == 1, "one placement held out, one trained on"
+    meta = {p.key: p.value for p in onnx.load(out / "policy.onnx").metadata_props}
+    assert mc.trained_on(meta, "easy", [0, 1]) == seeds and mc.trained_on(meta, "hard", [0]) == []
+    done = subprocess.run(
+        [sys.executable, "-m", "carrt", "eval", "--model", str(out / "policy.onnx"), "--layout",
+         "easy", "--tracks", "0-1", "--seconds", "2", "--seeds", "0"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    said = f"1 of the 2 placements ({seeds[0]}, layout easy) are ones policy.onnx was trained on"
+    assert said in done.stderr

@@ -45,6 +45,7 @@ from typing import Any
 import torch
 
 from carrt.errors import UserError
+from carrt.model_contract import sim_placements
 from training import checkpoint as ck
 from training.config import IterateConfig, UsageError
 from training.data import Normalisation, compute_normalisation, data_digest
@@ -241,6 +242,7 @@ def run_context(cfg: IterateConfig, dist: Dist, start: Start, digest: str, train
         "iteration": start.iteration,
         "code_version": ck.code_version(),
         "episodes": [ep.name for ep in train_eps],
+        "sim_placements": sim_placements(ep.meta for ep in train_eps),  # export records them
     }
     ctx = RunContext(
         dist=dist, ckpt_dir=out / "checkpoints", common=common, writer=writer,
