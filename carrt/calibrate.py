@@ -6,7 +6,8 @@ Each adjustment goes the only way the board allows: disarm, send the candidate C
 refuses changes while armed), arm again with neutral throttle, and hold the command that shows
 the value (straight ahead, full left, ...). A feeder thread keeps sending fresh decisions, so
 the board's 300 ms freshness check stays satisfied while the user thinks. The result goes into
-the car's TOML (only the [pwm] keys are touched, comments kept) and into the board's EEPROM.
+the car's TOML (only the [pwm] keys are touched, comments kept, the file checked to load
+before it is replaced: carrt/calibration_io.py) and into the board's EEPROM.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from pathlib import Path
 from typing import TextIO
 
 from carrt import config as car_config
-from carrt.calibration_io import disarm_and_wait, update_toml_section
+from carrt.calibration_io import commit, disarm_and_wait, plan_edit
 from carrt.errors import UserError
 from firmware_bridge import messages as m
 from firmware_bridge.link import BoardLink, LinkError
@@ -176,15 +177,15 @@ def run(args: argparse.Namespace, stdin: TextIO | None = None, stdout: TextIO | 
         if result is None:
             return 1
         car_config.from_dict(result.to_dict())  # the combination must still be valid
+        keys = [s.key for s in STEPS]
+        path = Path(args.config)
+        # the file's edit is checked before the board stores anything: one refused leaves both
+        edit = plan_edit(path, "pwm", {k: getattr(result.pwm, k) for k in keys})
         disarm_and_wait(link)
         ack = link.send_config(car_config.board_config(result, persist=True))
         if ack.result != m.ConfigResult.ACCEPTED or not ack.persisted:
             raise UserError("board did not store the calibration (is it armed, or has no EEPROM?)")
-    keys = [s.key for s in STEPS]
-    path = Path(args.config)
-    path.write_text(
-        update_toml_section(path.read_text(), "pwm", {k: getattr(result.pwm, k) for k in keys})
-    )
+    commit(edit)
     summary = ", ".join(f"{k} {getattr(result.pwm, k)}" for k in keys)
     print(f"\nwrote {summary} to {path} and the board's EEPROM", file=stdout)
     return 0

@@ -3,8 +3,9 @@
 The receiver is wired to the board, which measures its three channels and reports them in every
 TELEMETRY; so this asks the person to put each stick and the switch in a position, reads the
 board's widths there (the median of a short window, with the receiver's signal valid throughout)
-and writes them to the car's `[receiver]` section (comments kept) and, with the receiver fields
-the board rules with, to its EEPROM. Nothing moves: the board stays disarmed throughout.
+and writes them to the car's `[receiver]` section (comments kept, checked to load before the
+file is replaced) and, with the receiver fields the board rules with, to its EEPROM. Nothing
+moves: the board stays disarmed throughout.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from pathlib import Path
 from typing import TextIO
 
 from carrt import config as car_config
-from carrt.calibration_io import disarm_and_wait, update_toml_section
+from carrt.calibration_io import commit, disarm_and_wait, plan_edit
 from carrt.errors import UserError
 from firmware_bridge import messages as m
 
@@ -120,16 +121,17 @@ def run(link, config: car_config.CarConfig, path: Path, stdin: TextIO, stdout: T
     result = calibrate_receiver(link, config, stdin, stdout)
     if result is None:
         return 1
-    disarm_and_wait(link)
-    ack = link.send_config(car_config.board_config(result, persist=True))
-    if ack.result != m.ConfigResult.ACCEPTED or not ack.persisted:
-        raise UserError("board did not store the calibration (is it armed, or has no EEPROM?)")
     keys = [
         "steer_left_us", "steer_center_us", "steer_right_us", "throttle_reverse_us",
         "throttle_neutral_us", "throttle_forward_us", "estop_us",
     ]  # fmt: skip
     values = {k: getattr(result.receiver, k) for k in keys}
-    path.write_text(update_toml_section(path.read_text(), "receiver", values))
+    edit = plan_edit(path, "receiver", values)  # checked before the board stores anything
+    disarm_and_wait(link)
+    ack = link.send_config(car_config.board_config(result, persist=True))
+    if ack.result != m.ConfigResult.ACCEPTED or not ack.persisted:
+        raise UserError("board did not store the calibration (is it armed, or has no EEPROM?)")
+    commit(edit)
     summary = ", ".join(f"{k} {v}" for k, v in values.items())
     print(f"\nwrote {summary} to {path} and the board's EEPROM", file=stdout)
     if result.receiver.controls == "pad":

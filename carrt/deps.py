@@ -33,6 +33,8 @@ INSTALL_HINTS: dict[str, tuple[str, str]] = {
     "av": ("PyAV (H.264 episode videos)", f"{LAPTOP} (or pip install av)"),
     "rerun": ("the Rerun SDK (episodes in Rerun)", f"{LAPTOP} (or pip install rerun-sdk)"),
     "pygame": ("pygame (joystick and simulator window)", "pip install pygame"),
+    # a car's venv made before calibration needed it (carrt/toml_edit.py)
+    "tomlkit": ("tomlkit (editing car.toml)", "pip install tomlkit (or reinstall carrt)"),
     "torch": ("PyTorch (training)", TRAIN),
     "onnx": ("onnx (export)", TRAIN),
     "tqdm": ("tqdm (training progress)", TRAIN),
