@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 
+from carrt.episodes import replay
 from carrt.episodes.reader import in_order, list_episodes, read_episode
 from carrt.errors import EXIT_USAGE, UserError
 
@@ -116,11 +117,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "needs the token printed at start)",
     )
     view.set_defaults(func=run)
+    replay.add_parser(sub)
+    sub.choices["replay"].set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     actions = {"ls": run_ls, "show": run_show, "video": run_video, "view": run_view,
-               "mark": run_mark, "rerun": run_rerun, "salvage": run_salvage}  # fmt: skip
+               "mark": run_mark, "rerun": run_rerun, "salvage": run_salvage,
+               "replay": replay.run_replay}  # fmt: skip
     return actions[args.episodes_command](args)
 
 
