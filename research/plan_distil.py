@@ -358,7 +358,11 @@ def record(policy, tracks, seed: int, seconds: float, out: Path, teacher: bool) 
 
 
 def load_recorded(folder: Path) -> dict[str, np.ndarray]:
-    files = sorted(folder.glob("*-s*.npz"))
+    """One recorded set, or several joined with commas (their segments kept apart)."""
+    if "," in str(folder):
+        files = [f for part in str(folder).split(",") for f in sorted(Path(part).glob("*-s*.npz"))]
+    else:
+        files = sorted(folder.glob("*-s*.npz"))
     files = [f for f in files if ".part" not in f.name]
     if not files:
         raise UserError(f"{folder}: no recorded runs")
@@ -563,6 +567,19 @@ def targets(
     raise UserError(f"unknown arm {arm}")
 
 
+def gains(rec: dict, learnt: dict | None, arm: str) -> np.ndarray:
+    """(N,) how much the arm's best plan beats μ at each frame (m; 0 for T0): the simulator's
+    score for T1, the learnt cost for T2 and T3."""
+    n = np.arange(len(rec["plans"]))
+    if arm == "T0":
+        return np.zeros(len(n))
+    if arm == "T1":
+        sim = rec["sim_survival"]
+        return np.maximum(sim.max(1) - sim[:, 0], 0)
+    cost = learnt["cost"]
+    return np.maximum(cost[:, 0] - cost.min(1), 0)
+
+
 def distil(
     policy,
     rec: dict,
@@ -572,6 +589,7 @@ def distil(
     steps: int = 300,
     seed: int = 0,
     lr: float = 3e-4,
+    weight: np.ndarray | None = None,
 ) -> Path:
     """Fine-tune the policy's whole μ on the recorded frames' targets (L1) with imitation's L1
     on the demonstrations as the anchor (one batch of each per step); σ untouched (fixed).
@@ -590,11 +608,13 @@ def distil(
         torch.from_numpy(rec["speed"].astype(np.float32)),
     )
     tgt = torch.from_numpy(target.astype(np.float32))
+    wt = torch.ones(len(images)) if weight is None else torch.from_numpy(weight.astype(np.float32))
     net.eval()
     for step in range(steps):
         pick = torch.randint(len(images), (32,), generator=gen)
         mu, _ = net(images[pick], speeds[pick].view(-1, 1))
-        loss_t = (mu - tgt[pick]).abs().mean()
+        per = (mu - tgt[pick]).abs().mean(dim=(1, 2))
+        loss_t = (wt[pick] * per).sum() / wt[pick].sum()
         dpick = torch.randint(len(demos), (32,), generator=gen).tolist()
         items = [demos[i] for i in dpick]
         batch = {k: torch.stack([it[k] for it in items]) for k in items[0]}
@@ -931,6 +951,11 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--anchor", nargs="+", required=True)
     d.add_argument("--base-onnx", required=True)
     d.add_argument("--steps", type=int, default=300)
+    d.add_argument(
+        "--weight-by-gain",
+        action="store_true",
+        help="weight each frame by 1 + the target plan's gain over μ (m), at most 10",
+    )
     d.add_argument("--out", required=True)
     e = sub.add_parser("eval", help="drive plain (or with G0's planner) on validation")
     e.add_argument("--name", required=True)
@@ -980,7 +1005,13 @@ def main(argv: list[str] | None = None) -> int:
                 f"mean |Δ| {float(np.abs(tgt - rec['plans'][:, 0]).mean()):.4f}",
                 flush=True,
             )
-            pt = distil(load_policy(a.policy), rec, tgt, a.anchor, Path(a.out), a.steps)
+            weight = None
+            if a.weight_by_gain:
+                weight = np.clip(1 + gains(rec, learnt, a.arm), 1, 10)
+                print(f"weights: mean {weight.mean():.2f}, share > 2: {(weight > 2).mean():.2f}")
+            pt = distil(
+                load_policy(a.policy), rec, tgt, a.anchor, Path(a.out), a.steps, weight=weight
+            )
             to_onnx(pt, Path(a.base_onnx), rec["image"][:8], rec["speed"][:8])
         elif a.cmd == "eval":
             from carrt.policy import OnnxPolicy
