@@ -18,9 +18,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("episodes", help="list, summarise and render recorded episodes")
     sub = parser.add_subparsers(dest="episodes_command", required=True, metavar="ACTION")
 
-    ls = sub.add_parser("ls", help="one line per episode: duration, frames, speed, end reason")
+    ls = sub.add_parser(
+        "ls", help="one line per episode: duration, frames, speed, end reason, flags"
+    )
     ls.add_argument(
         "dirs", nargs="*", default=["episodes"], metavar="DIR", help="default: episodes"
+    )
+    ls.add_argument(
+        "--flags", metavar="NAME[,NAME]", help="only the episodes with any of these flags"
     )
     ls.set_defaults(func=run)
 
@@ -70,6 +75,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     mark.add_argument("--exclude-last", metavar="SECONDS",
                       help="exclude the last SECONDS (e.g. 3s)")  # fmt: skip
     mark.add_argument("--exclude-all", action="store_true", help="exclude the whole episode")
+    mark.add_argument("--exclude-flag", action="append", default=[], metavar="NAME[,NAME]",
+                      help="exclude the steps a flag names, e.g. frozen-camera")  # fmt: skip
     mark.add_argument("--note", action="append", default=[], help="add a note")
     what = mark.add_mutually_exclusive_group()
     what.add_argument("--list", action="store_true", help="print the marks (the default)")
@@ -129,10 +136,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_ls(args: argparse.Namespace) -> int:
+    from carrt.episodes.flags import label, parse_names
     from carrt.episodes.summary import summarize
 
+    wanted = parse_names(args.flags) if args.flags is not None else None
     paths = list_episodes(args.dirs)
     summaries = [summarize(read_episode(path)) for path in paths]  # errors before any output
+    if wanted is not None:
+        summaries = [s for s in summaries if set(s["flags"]) & set(wanted)]
     print(f"{'episode':<22} {'duration':>9} {'frames':>7} {'avg m/s':>8}  end")
     total_s = total_frames = 0
     for s in summaries:
@@ -140,11 +151,14 @@ def run_ls(args: argparse.Namespace) -> int:
         total_frames += s["frames"]
         end = s["end_reason"] + (" (torn tail)" if s["torn_tail"] else "")
         end += f" ({s['excluded_steps']} excluded)" if s["excluded_steps"] else ""
+        if s["flags"]:
+            end += "  flags: " + ", ".join(label(n, r) for n, r in s["flags"].items())
         print(
             f"{s['name']:<22} {s['duration_s']:>8.1f}s {s['frames']:>7} "
             f"{s['avg_speed_mps']:>8.2f}  {end}"
         )
-    print(f"{len(paths)} episodes, {total_s / 60:.1f} min, {total_frames} frames")
+    kept = f" with {', '.join(wanted)} (of {len(paths)})" if wanted is not None else ""
+    print(f"{len(summaries)} episodes{kept}, {total_s / 60:.1f} min, {total_frames} frames")
     return 0
 
 
@@ -170,12 +184,14 @@ def run_show(args: argparse.Namespace) -> int:
 
 
 def run_mark(args: argparse.Namespace) -> int:
+    from carrt.episodes import flags as suspect
     from carrt.episodes import marks as mk
 
+    named = [n for text in args.exclude_flag for n in suspect.parse_names(text, "--exclude-flag")]
     episodes = [read_episode(path) for path in in_order(args.episode)]  # errors before changes
     ranges = [mk.parse_range(text) for text in args.exclude]
     last = mk.parse_seconds(args.exclude_last) if args.exclude_last else None
-    adds = bool(ranges or last is not None or args.exclude_all or args.note)
+    adds = bool(ranges or last is not None or args.exclude_all or args.note or named)
     if adds and (args.clear or args.undo):
         raise UserError("--clear and --undo stand alone: give them without new marks")
     for ep in episodes:
@@ -190,6 +206,10 @@ def run_mark(args: argparse.Namespace) -> int:
                 # the steps in (end − last, end]: "the last 3 s" of 10 Hz is 30 steps
                 start = round(max(0.0, ep.duration_s - last) + 1e-3, 3)
                 new.append((start, round(ep.duration_s + 1.0, 3)))
+            flagged = suspect.find_flags(ep, tuple(named)) if named else {}
+            for name in named:  # exactly the steps the flag names, as `show` lists them
+                new += suspect.exclusions(flagged.get(name, []), ep.timestamps)
+                print(f"{ep.name}: {name}: {len(flagged.get(name, []))} range(s)")
 
             def add(m, new=new):
                 m.exclude.extend(r for r in new if r not in m.exclude)

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from carrt.episodes import flags as suspect
 from carrt.episodes.marks import read_marks
 from carrt.episodes.reader import Episode, collision_events, estop_count, speed_stats
 from carrt.interfaces import Mode
@@ -24,6 +25,8 @@ def summarize(ep: Episode) -> dict[str, Any]:
     model = ep.meta.get("model") or {}
     n = ep.n
     marks = read_marks(ep.path)
+    excluded = marks.excluded(steps["frame_captured_at"]) if n else np.zeros(0, dtype=bool)
+    found = suspect.find_flags(ep)
     return {
         "name": ep.name,
         "path": str(ep.path),
@@ -45,9 +48,22 @@ def summarize(ep: Episode) -> dict[str, Any]:
         "torn_tail": ep.torn,
         "damage": None if ep.damage is None else asdict(ep.damage),
         "marks": marks.describe(),
-        "excluded_steps": int(marks.excluded(steps["frame_captured_at"]).sum()) if n else 0,
+        "excluded_steps": int(excluded.sum()),
+        # name: [[start, end), ...] steps; with each range's wording for show
+        "flags": {name: [list(r) for r in ranges] for name, ranges in found.items()},
+        "flag_lines": [
+            _flag_line(n, r, steps["frame_captured_at"], excluded) for n, r in found.items()
+        ],
         "model_sha256": model.get("sha256"),
     }
+
+
+def _flag_line(name: str, ranges: suspect.Ranges, t: np.ndarray, excluded: np.ndarray) -> str:
+    counted = "" if suspect.is_fault(name) else f"{len(ranges)} (counted, not a fault), "
+    line = f"{name}: {counted}{suspect.describe_ranges(ranges, t)}"
+    if all(b > a and excluded[a:b].all() for a, b in ranges):
+        line += " (excluded)"
+    return line
 
 
 def format_summary(summary: dict[str, Any]) -> str:
@@ -76,4 +92,6 @@ def format_summary(summary: dict[str, Any]) -> str:
             else ""
         ),
     ]
+    flag_lines = summary.get("flag_lines") or ["none"]
+    lines += [f"{'flags' if i == 0 else '':<15}{line}" for i, line in enumerate(flag_lines)]
     return "\n".join(lines)
