@@ -1,7 +1,7 @@
 """Episodes that flag their own problems (issue 68, item 3): each flag found, at its steps, on an
 episode crafted to have it and not on one just inside its threshold; `ls` names them, `--flags`
 keeps the episodes that have them, `show` lists their steps, `mark --exclude-flag` excludes
-exactly those steps (so training never sees them), and a clean episode
+exactly those steps (so training never sees them), the scrubber draws them, and a clean episode
 recorded by the simulator's expert flags nothing."""
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from carrt.episodes import flags as suspect
 from carrt.episodes.marks import read_marks
 from carrt.episodes.reader import read_episode
 from carrt.interfaces import Mode
+from carrt.view.episodes import EpisodeFeed
 
 
 def _ep(tmp_path, steps, **kwargs):
@@ -201,6 +203,38 @@ def test_mark_excludes_exactly_the_flagged_steps(tmp_path, capsys):
 
     ep = read_episode(frozen)
     assert kept_segments(read_marks(frozen).excluded(ep.timestamps)) == [(0, 10), (20, 40)]
+
+
+def test_the_scrubber_gets_the_flagged_ranges_in_its_numbering(tmp_path):
+    frozen, dead, clean = _crafted(tmp_path)
+    feed = EpisodeFeed([read_episode(p) for p in (clean, frozen, dead)])
+    assert feed.timeline()["suspect"] == [
+        {"episode": 1, "name": "frozen-camera", "fault": True, "ranges": [[40, 50]]},
+        {"episode": 2, "name": "dead-speed", "fault": True, "ranges": [[90, 110]]},
+    ]
+
+
+def test_the_scrubber_draws_and_names_the_flags(tmp_path):
+    """In headless Chromium: the frozen steps' columns of the timeline carry the magenta bar,
+    the others not, and the episode's flags are named with their steps."""
+    from browser import chromium
+    from view_rig import carrt_with_view
+
+    frozen, _, _ = _crafted(tmp_path)
+    pixel = """const c = document.getElementById('timeline'); const g = c.getContext('2d');
+    return Array.from(g.getImageData(Math.floor((arguments[0] + 0.5) * c.width / 40), 2, 1, 1)
+    .data).slice(0, 3);"""
+    with carrt_with_view(["episodes", "view", str(frozen), "--view", "0"], tmp_path) as run, \
+            chromium() as browser:  # fmt: skip
+        browser.get(run.url)
+        script = "return document.getElementById('suspect').textContent"
+        for _ in range(200):
+            if browser.execute_script(script) != "–":
+                break
+            time.sleep(0.05)
+        assert browser.execute_script(script) == "frozen-camera 10–19"
+        assert browser.execute_script(pixel, 15) == [0xE0, 0x40, 0xFB]
+        assert browser.execute_script(pixel, 30) != [0xE0, 0x40, 0xFB]
 
 
 def test_a_clean_simulator_recording_flags_nothing(tmp_path, capsys):

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from carrt.episodes import flags as suspect
 from carrt.episodes import marks as mk
 from carrt.episodes.format import FLAGS
 from carrt.episodes.reader import Episode, in_order, read_episode
@@ -136,7 +137,22 @@ class EpisodeFeed:
                 for v in m.excluded(ep.steps["frame_captured_at"])
             ],
             "marks": [m.describe() for m in marks],
+            "suspect": self.suspect(),
         }
+
+    def suspect(self) -> list[dict[str, Any]]:
+        """Each flag (carrt/episodes/flags.py) of each episode: its name, whether it is a fault
+        and its [k0, k1) ranges in the slider's numbering. Found once: a recording never
+        changes."""
+        if not hasattr(self, "_suspect"):
+            pairs = enumerate(zip(self.episodes, self.starts[:-1], strict=True))
+            self._suspect = [
+                {"episode": e, "name": name, "fault": suspect.is_fault(name),
+                 "ranges": [[int(start) + a, int(start) + b] for a, b in ranges]}
+                for e, (ep, start) in pairs
+                for name, ranges in suspect.find_flags(ep).items()
+            ]  # fmt: skip
+        return self._suspect
 
     def step(self, k: int) -> dict[str, Any]:
         ep, i = self.locate(k)
