@@ -173,3 +173,40 @@ def test_a_range_marked_in_the_browser_is_excluded_and_undone(tmp_path):
         assert read_marks(first).exclude == []
     assert digest == {n: hashlib.sha256((first / n).read_bytes()).hexdigest()
                       for n in ("steps.bin", "frames.u8", "meta.json")}  # fmt: skip
+
+
+def test_a_policy_replayed_over_the_episodes_is_a_row_and_a_trace(tmp_path):
+    """`carrt episodes view EP --model M`: each step's action of M as the car would have run
+    it, in the actions table and as a steering trace on the timeline."""
+    from onnx_models import build_policy
+
+    from carrt.episodes import replay
+    from carrt.policy import OnnxPolicy
+
+    episodes = _episodes(tmp_path)
+    model = build_policy(tmp_path / "left.onnx", steering=-0.6, throttle=(0.4, 0.0))
+    expected = replay.model_actions(OnnxPolicy(model), episodes[1])
+    argv = ["episodes", "view", *(str(ep.path) for ep in episodes), "--model", str(model),
+            "--view", "0"]  # fmt: skip
+    with carrt_with_view(argv, tmp_path) as run, chromium() as browser:
+        timeline = json.loads(request(f"{run.base}/episodes.json")[1])
+        trace = np.array(timeline["replayed"]["left.onnx"])
+        assert trace.shape == (50, 2)
+        np.testing.assert_allclose(trace[20:], expected, atol=1e-3)
+        browser.set_window_size(1400, 900)
+        browser.get(run.url)
+        deadline = time.monotonic() + 10
+        while _text(browser, "k") != "0":
+            assert time.monotonic() < deadline, "the page never opened at step 0"
+            time.sleep(0.05)
+        _scrub(browser, 33)
+        assert "replay: left.onnx" in _text(browser, "actions")
+        assert _text(browser, "replay-0-0") == f"{float(expected[13][0]):.3f}"
+        colour = browser.execute_script(
+            "const c = document.getElementById('timeline'), g = c.getContext('2d');"
+            "const d = g.getImageData(0, 0, c.width, c.height).data; let n = 0;"
+            "for (let i = 0; i < d.length; i += 4)"
+            "  if (d[i] < 40 && d[i + 1] > 200 && d[i + 2] > 230) n++;"
+            "return n;"
+        )
+        assert colour > 50, "the replayed steering is drawn on the timeline (cyan)"

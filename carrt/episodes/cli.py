@@ -123,6 +123,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="where to serve (default 8090 on localhost; 0 picks a free port; another HOST "
         "needs the token printed at start)",
     )
+    view.add_argument(
+        "--model", action="append", metavar="M.onnx",
+        help="also each step's action of this policy as the car would have run it (carrt "
+        "episodes replay), as a trace on the timeline; give it twice to compare two",
+    )  # fmt: skip
     view.set_defaults(func=run)
     replay.add_parser(sub)
     sub.choices["replay"].set_defaults(func=run)

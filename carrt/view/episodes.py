@@ -27,6 +27,7 @@ import numpy as np
 
 from carrt.episodes import flags as suspect
 from carrt.episodes import marks as mk
+from carrt.episodes import replay
 from carrt.episodes.format import FLAGS
 from carrt.episodes.reader import Episode, in_order, read_episode
 from carrt.errors import UserError
@@ -39,10 +40,17 @@ MODES = {int(m): m.name for m in Mode}
 class EpisodeFeed:
     """The steps of `episodes` in order, numbered 0..total-1 across all of them."""
 
-    def __init__(self, episodes: list[Episode]) -> None:
+    def __init__(self, episodes: list[Episode], models: dict[str, Any] | None = None) -> None:
         self.episodes = episodes
         self.starts = np.cumsum([0, *(ep.n for ep in episodes)])
         self.total = int(self.starts[-1])
+        # each model's action at every step, as the car would have run it (carrt episodes
+        # replay): computed once, before the page is served
+        self.replayed = {
+            name: np.concatenate([replay.model_actions(p, ep) for ep in episodes] or
+                                 [np.zeros((0, 2), np.float32)])
+            for name, p in (models or {}).items()
+        }  # fmt: skip
 
     def routes(self) -> dict[str, Route]:
         return {
@@ -138,6 +146,7 @@ class EpisodeFeed:
             ],
             "marks": [m.describe() for m in marks],
             "suspect": self.suspect(),
+            "replayed": {n: _rounded(a) for n, a in self.replayed.items()},
         }
 
     def suspect(self) -> list[dict[str, Any]]:
@@ -175,6 +184,7 @@ class EpisodeFeed:
             "human": np.asarray(s["human_action"], np.float64).tolist(),
             "policy": np.asarray(s["policy_action"], np.float64).tolist(),
             "executed": np.asarray(s["executed_action"], np.float64).tolist(),
+            "replayed": {n: a[k].astype(np.float64).tolist() for n, a in self.replayed.items()},
             "plan": {"mu": mu.tolist(), "sigma": sigma.tolist()} if has_plan else None,
             "flags": {name: bool(s[name]) for name in FLAGS},
             "collision_label": int(ep.collision[i]),
@@ -192,12 +202,23 @@ class EpisodeFeed:
         return Response(data.tobytes(), "image/png")
 
 
+def _rounded(actions: np.ndarray) -> list:
+    return np.round(actions.astype(np.float64), 3).tolist()
+
+
 def run_view(args: argparse.Namespace) -> int:
     """Serve until Ctrl-C (or SIGTERM); exits 0."""
     # errors before binding; a folder of episodes is taken as `carrt episodes ls` takes it
     episodes = [read_episode(path) for path in in_order(args.episode)]
+    models = {}
+    if getattr(args, "model", None):
+        from carrt.policy import OnnxPolicy
+
+        for model in args.model:
+            policy = OnnxPolicy(model)  # refused as the car would refuse it
+            models[policy.path.name if policy.path.name not in models else model] = policy
     server = ViewServer(args.view)
-    feed = EpisodeFeed(episodes)
+    feed = EpisodeFeed(episodes, models)
     server.serve(feed.routes(), feed.post_routes())
     total = sum(ep.n for ep in episodes)
     print(f"view: {server.url}", flush=True)
