@@ -498,6 +498,7 @@ def test_the_export_names_its_training_placements_and_carrt_eval_warns_on_them(r
     import onnx
 
     from carrt import model_contract as mc
+
     out, _, _ = runs
     _, saved = ck.load_policy(out / "policy.pt")
     assert saved["sim_placements"] and set(saved["sim_placements"]) == {"easy"}
