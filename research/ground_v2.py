@@ -529,7 +529,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     torch.set_num_threads(1)
     try:
-        from research.plan_distil import load_recorded
+        from research.recorded_runs import load_recorded
 
         segs = segments_from_episodes(a.episodes) if a.episodes else []
         for r in a.recorded:

@@ -46,6 +46,7 @@ from torch import Tensor
 
 from carrt.errors import EXIT_USAGE, UserError
 from research import ceiling
+from research.recorded_runs import load_recorded
 
 HORIZON = 10
 SWERVES = (-0.6, -0.3, 0.3, 0.6)  # steering offsets held for SWERVE_STEPS, then back to μ
@@ -355,28 +356,6 @@ def record(policy, tracks, seed: int, seconds: float, out: Path, teacher: bool) 
             f"collisions/min, {row['wall_s']:.0f} s",
             flush=True,
         )
-
-
-def load_recorded(folder: Path) -> dict[str, np.ndarray]:
-    """One recorded set, or several joined with commas (their segments kept apart)."""
-    if "," in str(folder):
-        files = [f for part in str(folder).split(",") for f in sorted(Path(part).glob("*-s*.npz"))]
-    else:
-        files = sorted(folder.glob("*-s*.npz"))
-    files = [f for f in files if ".part" not in f.name]
-    if not files:
-        raise UserError(f"{folder}: no recorded runs")
-    parts = [dict(np.load(f)) for f in files]
-    out = {}
-    for k in parts[0]:
-        out[k] = np.concatenate([p[k] for p in parts])
-    # segments unique across runs
-    offset, segs = 0, []
-    for p in parts:
-        segs.append(p["segment"] + offset)
-        offset += int(p["segment"].max()) + 1
-    out["segment"] = np.concatenate(segs)
-    return out
 
 
 # -- the learnt teacher: scoring recorded frames -------------------------------------------
