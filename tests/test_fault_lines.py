@@ -126,7 +126,7 @@ def test_a_receiver_gone_quiet_is_one_line_and_one_when_it_is_back(tmp_path, cap
         run = CliRun(
             [
                 "drive", "--port", car.port, "--camera", str(video), "--out", str(tmp_path),
-                "--model", str(model), "--duration", "12", "--set", "camera.loop_video=true",
+                "--model", str(model), "--duration", "10", "--set", "camera.loop_video=true",
                 "--set", 'receiver.controls="receiver"',
                 "--set", f"receiver.gesture_s={GESTURE_S}",
                 "--set", f"receiver.release_s={RELEASE_S}",
