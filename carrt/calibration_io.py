@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from carrt import config as car_config
+from carrt.episodes.format import fsync_dir
 from carrt.errors import UserError
 from firmware_bridge import messages as m
 from firmware_bridge.link import BoardLink
@@ -137,7 +138,7 @@ def commit(edit: ConfigEdit) -> None:
     finally:
         if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
-    _sync_directory(target.parent)
+    fsync_dir(target.parent)  # the rename survives a power cut (the battery unplugged)
 
 
 def _check_loads(written: Path, edit: ConfigEdit) -> None:
@@ -147,17 +148,3 @@ def _check_loads(written: Path, edit: ConfigEdit) -> None:
     except UserError as exc:
         reason = str(exc).replace(str(written), str(edit.path))
         raise UserError(f"{edit.path} not written: it would not load ({reason})") from exc
-
-
-def _sync_directory(directory: Path) -> None:
-    """The rename itself survives a power cut (the car's battery unplugged after calibrating)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass  # some filesystems refuse fsync on a directory; the rename has been made
-    finally:
-        os.close(fd)
