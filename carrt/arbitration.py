@@ -199,8 +199,8 @@ class Arbiter:
                 # the transmitter is read through a board that stopped talking: the board's
                 # watchdog stops the car; the host follows it down (a reboot is then named)
                 disarm = self._disarm(SILENT_BOARD_WHY)
-            else:
-                self._latch("joystick disconnected")
+            else:  # the person's controls are gone: named as the part that went
+                self._latch("receiver lost" if js.through_board else "joystick disconnected")
         if inp.camera_lost and self._mode == Mode.AUTO:
             why = inp.camera_lost_reason
             self._latch(f"camera lost ({why})" if why else "camera lost")

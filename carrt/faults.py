@@ -22,8 +22,10 @@ from firmware_bridge import messages as m
 LOG = logging.getLogger("carrt.loop")  # said where the loop's mode lines are
 
 SETTLE_S = 0.5  # a fault must stay gone this long before it is said to be over
-# a rebooted board wants 5 good pulses of each receiver channel (100 ms) before it counts it
-# again: a receiver "lost" that long after a reboot is the reboot, said already
+# a board wants 5 good pulses of each receiver channel (100 ms) after it boots before it counts
+# the receiver: a receiver "lost" that long after a reboot is the reboot, said already, and that
+# long after the board is first heard it is the board starting (a transmitter that is off at
+# the start is still said, once the board has had the time to count it)
 REVALIDATE_S = 0.5
 
 
@@ -133,6 +135,7 @@ class PartsWatch:
         self._reboots_seen = parts.link.counters.reboots_detected
         self._config_pending_since: float | None = None
         self._rebooted_at = -float("inf")
+        self._first_heard_at: float | None = None  # the first tick with the board's telemetry
         self._receiver_is_controls = config.receiver.controls in ("receiver", "both")
         self.notices: tuple[tuple[float, str], ...] = ()
         self.faults = FaultWatch(self._notice)
@@ -158,11 +161,16 @@ class PartsWatch:
         """This tick's faults (a loop.Tick after arbitration), each said when it starts/ends."""
         parts, frame, link = self.parts, tick.frame, self.parts.link
         if getattr(link, "config_pending", False):
-            self._config_pending_since = self._config_pending_since or tick.now
+            if self._config_pending_since is None:  # (a clock may start at 0.0)
+                self._config_pending_since = tick.now
         else:
             self._config_pending_since = None
         pending = self._config_pending_since
         lost = getattr(parts.camera, "lost_reason", None)
+        if self._first_heard_at is None and tick.telemetry is not None:
+            self._first_heard_at = tick.now
+        heard = tick.now if self._first_heard_at is None else self._first_heard_at
+        counting = max(self._rebooted_at, heard)  # since when the board could count pulses
         self.faults.update(
             tick.now,
             measured_faults(
@@ -174,7 +182,7 @@ class PartsWatch:
                 telemetry_age_s=link.telemetry_age_s(),
                 max_telemetry_age_s=self.config.encoder.max_age_s,
                 receiver_is_controls=self._receiver_is_controls
-                and tick.now - self._rebooted_at > REVALIDATE_S,
+                and tick.now - counting > REVALIDATE_S,
                 config_pending_s=None if pending is None else tick.now - pending,
             ),
         )

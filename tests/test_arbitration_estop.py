@@ -240,7 +240,7 @@ def test_controls_read_through_a_silent_board_disarm_and_a_pulled_pad_estops():
     rig = Rig()
     rig.auto()
     d = rig.tick(through, telemetry_age_s=0.01)  # the board talks: the receiver itself is gone
-    assert d.mode == Mode.ESTOP and rig.arbiter.estop_reason == "joystick disconnected"
+    assert d.mode == Mode.ESTOP and rig.arbiter.estop_reason == "receiver lost"
     rig = Rig()
     rig.auto()
     d = rig.tick(pad(connected=False), telemetry_age_s=0.3)  # a pad: the dead-man, always

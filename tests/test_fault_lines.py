@@ -8,13 +8,14 @@ cable is pulled; the lines are counted in what the person reads.
 from __future__ import annotations
 
 import time
+from types import SimpleNamespace
 
 import pytest
 from e2e_rig import PAD_SETTINGS, CliRun, SyntheticPad, wait_for, write_video
 from onnx_models import build_policy
 from receiver_rig import GESTURE_S, NEUTRAL, RELEASE_S, VirtualCar, person_arms_and_gives_auto
 
-from carrt.faults import FaultWatch, measured_faults
+from carrt.faults import FaultWatch, PartsWatch, measured_faults
 from firmware_bridge import messages as m
 from firmware_bridge.virtual import VirtualBoard
 
@@ -76,6 +77,44 @@ def test_each_fault_is_measured_with_its_reason():
     assert measured(telemetry=m.Telemetry(flags=0), receiver_is_controls=False) == {}
     assert "arming is held" in measured(config_pending_s=0.8)["car config not on the board"]
     assert measured(config_pending_s=0.2) == {}
+
+
+def parts_watch(receiver: str = "receiver"):
+    link = SimpleNamespace(
+        counters=SimpleNamespace(reboots_detected=0), board=None, connected=True,
+        config_pending=False, telemetry_age_s=lambda: 0.01,
+    )  # fmt: skip
+    camera = SimpleNamespace(lost=False, lost_reason=None)
+    config = SimpleNamespace(
+        receiver=SimpleNamespace(controls=receiver), camera=SimpleNamespace(max_age_s=0.15),
+        encoder=SimpleNamespace(max_age_s=0.1),
+    )  # fmt: skip
+    return PartsWatch(SimpleNamespace(link=link, camera=camera), config)
+
+
+def tick_at(now: float, rc_signal: bool, heard: bool = True):
+    flags = int(m.TelemetryFlags.RC_SIGNAL) if rc_signal else 0
+    sample = SimpleNamespace(telemetry=m.Telemetry(flags=flags)) if heard else None
+    return SimpleNamespace(now=now, frame=None, telemetry=sample)
+
+
+def test_a_board_counting_its_first_pulses_is_not_a_lost_receiver_but_one_that_stays_off_is():
+    watch_ = parts_watch()
+    for k in range(4):  # the board not heard yet, then heard while it counts its 5 pulses
+        watch_.faults_of(tick_at(k * 0.1, rc_signal=False, heard=k > 0))
+    watch_.faults_of(tick_at(0.5, rc_signal=True))
+    assert watch_.faults.active == () and watch_.notices == ()
+    off = parts_watch()  # the transmitter off from the start: said once the board had the time
+    for k in range(10):
+        off.faults_of(tick_at(k * 0.1, rc_signal=False))
+    assert [line for _t, line in off.notices] == [
+        "receiver lost: the board has no valid pulse from the receiver (transmitter off, out of "
+        "range or a wire loose; it needs 5 good pulses after a loss or a reboot)"
+    ]
+    pad = parts_watch(receiver="none")  # a pad holds the controls: the receiver is not a fault
+    for k in range(10):
+        pad.faults_of(tick_at(k * 0.1, rc_signal=False))
+    assert pad.notices == ()
 
 
 def count(output: str, text: str) -> int:
@@ -146,6 +185,7 @@ def test_a_receiver_gone_quiet_is_one_line_and_one_when_it_is_back(tmp_path, cap
     output = out.out + out.err
     assert count(output, "receiver lost: the board has no valid pulse") == 1, output
     assert count(output, "receiver lost: over after") == 1, output
+    assert count(output, "mode ESTOP (neutral: e-stop: receiver lost)") == 1, output
 
 
 def test_a_pulled_cable_is_one_board_silent_line_and_one_when_it_is_back(tmp_path, board, capsys):
