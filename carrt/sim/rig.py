@@ -48,6 +48,8 @@ class Tracker:
         mode = self.mode_source() if self.mode_source is not None else Mode.MANUAL
         driving = mode in (Mode.MANUAL, Mode.AUTO)
         self._armed_once = self._armed_once or driving
+        if not self._armed_once:  # the car waits to be armed: not drive time, and the first
+            return collided  # lap is timed from the first driving tick, as the episode's is
         # a takeover: the person moved the sticks in AUTO and the arbiter handed over
         took_over = self._last_mode == Mode.AUTO and mode == Mode.MANUAL
         self._last_mode = mode
