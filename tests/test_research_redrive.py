@@ -84,7 +84,8 @@ def test_rows_are_driven_once_per_distinct_policy_and_tabled_with_the_new_laps(t
     new = {(r["model"], r["seed"]): r for r in written["rows"]}
     for key, row in new.items():
         assert [run["track"] for run in row["runs"]] == [150], key
-        assert row["runs"][0]["simulated_s"] == pytest.approx(2.0, abs=0.15)
+        # the 2 s less the pilot's arming (the trajectory starts at the first driving tick)
+        assert 0.8 < row["runs"][0]["simulated_s"] <= 2.0
     assert new[("DIRL iter 1", 0)]["runs"] == new[("IL", 0)]["runs"]
     table = (out / "table.md").read_text()
     assert "| 0 | DIRL iter 1 | IL | 2 | +0.00, +0.00 |" in table  # identical bytes, identical laps
