@@ -11,6 +11,14 @@ PYTHON310 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.10.*/bin/python3.1
 VENV310 ?= .venv310
 PY310 := $(VENV310)/bin/python
 STAMP310 := $(VENV310)/.installed
+# LeRobot's own reader, which the tests read carrt's LeRobotDataset export with
+# (tests/test_episodes_lerobot_reader.py): a venv of its own, because lerobot-dataset 0.4.4 pins
+# older PyAV, OpenCV, numpy and packaging than carrt's; torchvision without its dependencies (its
+# wheel is a CUDA build: tests/lerobot_reader.py defines the two operators LeRobot's import asks
+# for). Never on the car, never in the 3.10 venv.
+LEROBOT_VENV ?= .venv-lerobot
+LEROBOT_PY := $(LEROBOT_VENV)/bin/python
+LEROBOT_STAMP := $(LEROBOT_VENV)/.installed
 # The firmware core is compiled into the package (setup.py); a checkout rebuilds it in place when
 # a C file changes, for every venv that uses this tree.
 FW_SOURCES := $(wildcard firmware_bridge/firmware/carrt_fw/src/*.[ch] firmware_bridge/firmware/host/*.c) \
@@ -36,6 +44,14 @@ $(STAMP): pyproject.toml setup.py | system-demo
 	$(PY) -m pip install --quiet -e '.[laptop,dev,train]'
 	touch $(STAMP)
 
+$(LEROBOT_STAMP): | system-test
+	$(PYTHON) -m venv $(LEROBOT_VENV)
+	$(LEROBOT_PY) -m pip install --quiet --upgrade pip
+	$(LEROBOT_PY) -m pip install --quiet torch==2.13.0
+	$(LEROBOT_PY) -m pip install --quiet lerobot-dataset==0.4.4 torchcodec==0.13.0
+	$(LEROBOT_PY) -m pip install --quiet --no-deps torchvision==0.28.0
+	touch $(LEROBOT_STAMP)
+
 $(STAMP310): pyproject.toml setup.py | system-test
 	$(PYTHON310) -m venv $(VENV310)
 	$(PY310) -m pip install --quiet --upgrade pip "setuptools>=77"
@@ -53,7 +69,7 @@ demo: system-demo $(STAMP) core
 # The whole suite under 3.11 (with torch) in three processes: runtime, training (never in a
 # process that ran the simulator: see tests/e2e_rig.py record_sim_dataset), install; then the
 # runtime suite under 3.10 (without torch).
-test: system-test $(STAMP) core
+test: system-test $(STAMP) $(LEROBOT_STAMP) core
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
 	$(PY) -m pytest -q -m "not install" --ignore-glob='tests/test_train_*' \
@@ -93,7 +109,7 @@ lint: $(STAMP)
 	$(PY) -m ruff format .
 
 clean:
-	rm -rf $(VENV) $(VENV310) build firmware_bridge/_build firmware_bridge/_fw_core*.so \
+	rm -rf $(VENV) $(VENV310) $(LEROBOT_VENV) build firmware_bridge/_build firmware_bridge/_fw_core*.so \
 		.pytest_cache .hypothesis
 
 # The firmware for an ATmega328P (Uno/Nano), built with Debian's Arduino core and avr-gcc (no

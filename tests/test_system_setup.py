@@ -25,7 +25,8 @@ SCRIPT = REPO / ".ci" / "system-packages"
 # libc and of this interpreter are on the test machine, so they are not among them).
 TEST_TOOLS = [
     "xvfb", "xdotool", "chromium", "chromium-driver", "gcc-avr", "avr-libc", "arduino-core-avr",
-    "simavr", "libsimavr-dev", "git",
+    "simavr", "libsimavr-dev", "git", "libavcodec59", "libavformat59", "libavutil57", "libswscale6",
+    "libswresample4", "libavdevice59", "libavfilter8",
 ]  # fmt: skip
 NO_PY310 = (
     "no Python 3.10 (the car's Python, for make test-py310 and the install tests): install one "
@@ -76,6 +77,7 @@ def bare_machine(
         "AVR_LIBC_INCLUDE": str(tmp / "none"),
         "ARDUINO_AVR": str(tmp / "none"),
         "SIMAVR_INCLUDE": str(tmp / "none"),
+        "FFMPEG_LIB_DIRS": str(tmp / "none"),
     }
 
 

@@ -14,8 +14,8 @@ import logging
 import os
 from collections.abc import Iterable, Sequence
 
-from carrt.episodes.marks import kept_segments, read_marks
-from carrt.episodes.reader import Episode, list_episodes, read_episode, segment
+from carrt.episodes.marks import apply_marks
+from carrt.episodes.reader import Episode, list_episodes, read_episode
 
 log = logging.getLogger("training.data")  # the name users and tests already filter on
 
@@ -45,19 +45,6 @@ def load_episodes(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> lis
     if excluded:
         log.info("marks: %d steps of %d episodes left out of training", excluded, marked)
     return episodes
-
-
-def apply_marks(ep: Episode) -> list[Episode]:
-    """The episode's steps a person did not exclude (carrt/episodes/marks.py), as segments:
-    unmarked it is itself; excluded ranges split it, so no window or sequence spans one."""
-    marks = read_marks(ep.path)
-    if marks.empty:
-        return [ep]
-    excluded = marks.excluded(ep.timestamps)
-    if not excluded.any():
-        return [ep]
-    runs = kept_segments(excluded)
-    return [segment(ep, a, b, i) for i, (a, b) in enumerate(runs)]
 
 
 def _rank_key(seed: int, name: str) -> bytes:

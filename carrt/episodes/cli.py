@@ -1,4 +1,5 @@
-"""`carrt episodes ls|show|video|view`: look at recordings before they go into training."""
+"""`carrt episodes ls|show|video|view|…`: look at recordings before they go into training, and
+take them to and from LeRobot's format."""
 
 from __future__ import annotations
 
@@ -106,6 +107,41 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     rrd.add_argument("-o", "--output", required=True, metavar="FILE.rrd", help="file to write")
     rrd.set_defaults(func=run)
 
+    export = sub.add_parser(
+        "export",
+        help="write episodes as a LeRobotDataset v3.0 (the Hub's format: parquet and H.264)",
+        description="Write episodes as a LeRobotDataset v3.0: the camera as an H.264 video, "
+        "the speed as observation.state, the person's action a* as action, carrt's other "
+        "fields as carrt.* features (docs/episodes.md); one LeRobot episode per episode or per "
+        "run of steps between excluded ranges (excluded steps are never exported).",
+        epilog="example: carrt episodes export episodes/ --format lerobot -o my-car-dataset",
+    )
+    export.add_argument("episode", metavar="EP", nargs="+", help="episodes, or folders of them")
+    export.add_argument("--format", required=True, choices=["lerobot"],
+                        help="lerobot: LeRobotDataset v3.0")  # fmt: skip
+    export.add_argument("-o", "--output", required=True, metavar="OUT",
+                        help="the dataset's folder (new, or empty)")  # fmt: skip
+    export.add_argument(
+        "--video", choices=["lossless", "browser"], default="lossless",
+        help="lossless (default): 4:4:4 H.264, frames back within 2/255; browser: 4:2:0, "
+        "what browsers and the Hub's visualiser play, a sharp colour edge far off",
+    )  # fmt: skip
+    export.set_defaults(func=run)
+
+    imp = sub.add_parser(
+        "import",
+        help="read a LeRobotDataset v3.0 as episodes (a carrt export, or another's with "
+        "--camera/--action/--speed)",
+        epilog="example: carrt episodes import my-car-dataset -o episodes-imported",
+    )
+    imp.add_argument("dataset", metavar="IN", help="the dataset's folder (meta/info.json)")
+    imp.add_argument("-o", "--output", required=True, metavar="DIR",
+                     help="folder the episodes go into")  # fmt: skip
+    imp.add_argument("--camera", metavar="KEY", help="its camera's video feature")
+    imp.add_argument("--action", metavar="KEY", help="its [steering, throttle] feature")
+    imp.add_argument("--speed", metavar="KEY[:I]", help="its speed (entry I of a vector)")
+    imp.set_defaults(func=run)
+
     view = sub.add_parser(
         "view",
         help="scrub episodes in a browser: frame, actions, plan, speed, flags, collisions, laps",
@@ -136,7 +172,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     actions = {"ls": run_ls, "show": run_show, "video": run_video, "view": run_view,
                "mark": run_mark, "rerun": run_rerun, "salvage": run_salvage,
-               "replay": replay.run_replay}  # fmt: skip
+               "replay": replay.run_replay, "export": run_export,
+               "import": run_import}  # fmt: skip
     return actions[args.episodes_command](args)
 
 
@@ -247,6 +284,31 @@ def run_rerun(args: argparse.Namespace) -> int:
     episodes = [read_episode(path) for path in in_order(args.episode)]
     steps = write_rrd(episodes, args.output)
     print(f"wrote {args.output} ({len(episodes)} episode(s), {steps} steps): rerun {args.output}")
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    import time
+
+    from carrt.episodes.lerobot_export import export_lerobot
+
+    start = time.perf_counter()
+    done = export_lerobot(args.episode, args.output, video=args.video)
+    print(
+        f"wrote {args.output}: LeRobotDataset v3.0, {done['lerobot_episodes']} episode(s) of "
+        f"{done['episodes']} recorded, {done['frames']} frames, "
+        f"{time.perf_counter() - start:.1f} s"
+    )
+    return 0
+
+
+def run_import(args: argparse.Namespace) -> int:
+    from carrt.episodes.lerobot_import import Mapping, import_lerobot
+
+    mapping = Mapping.parse(args.camera, args.action, args.speed)
+    paths = import_lerobot(args.dataset, args.output, mapping)
+    print(f"wrote {len(paths)} episode(s) into {args.output} (check: carrt episodes ls "
+          f"{args.output}; carrt episodes show EP --verify)")  # fmt: skip
     return 0
 
 

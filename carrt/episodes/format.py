@@ -193,6 +193,27 @@ def record_crc(record: bytes | memoryview, frame: bytes | memoryview) -> int:
     return zlib.crc32(frame, zlib.crc32(record[:-4]))
 
 
+def write_records(
+    path: Path, records: np.ndarray, frames: np.ndarray, meta: dict[str, Any]
+) -> None:
+    """A whole episode written at once into the existing folder `path` (salvage, import): the
+    records renumbered and their CRCs computed over each record and its frame, the files made
+    durable, then synced.json and meta.json."""
+    records = records.copy()
+    records["seq"] = np.arange(len(records), dtype=records["seq"].dtype)
+    raw = records.view(np.uint8).reshape(len(records), records.dtype.itemsize)
+    frames = np.ascontiguousarray(frames, dtype=np.uint8).reshape(len(records), FRAME_BYTES)
+    for i in range(len(records)):
+        records["crc"][i] = record_crc(raw[i], frames[i])
+    for name, array in ((STEPS, records), (FRAMES, frames)):
+        with open(path / name, "wb") as f:
+            array.tofile(f)
+            f.flush()
+            os.fsync(f.fileno())
+    write_json_atomic(path / SYNCED, {"steps": len(records)})
+    write_json_atomic(path / META, meta)
+
+
 def fsync_dir(path: Path) -> None:
     """Make a create/rename inside `path` durable (a no-op where directories cannot be opened)."""
     try:

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from carrt.episodes import format as fmt
+from carrt.episodes.reader import Episode, segment
 from carrt.errors import UserError
 
 MARKS = "marks.json"
@@ -159,3 +160,16 @@ def kept_segments(excluded: np.ndarray) -> list[tuple[int, int]]:
     if start is not None:
         out.append((start, len(excluded)))
     return out
+
+
+def apply_marks(ep: Episode) -> list[Episode]:
+    """The episode's steps a person did not exclude (its marks.json), as segments:
+    unmarked it is itself; excluded ranges split it, so no window or sequence spans one."""
+    marks = read_marks(ep.path)
+    if marks.empty:
+        return [ep]
+    excluded = marks.excluded(ep.timestamps)
+    if not excluded.any():
+        return [ep]
+    runs = kept_segments(excluded)
+    return [segment(ep, a, b, i) for i, (a, b) in enumerate(runs)]

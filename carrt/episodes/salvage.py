@@ -47,19 +47,11 @@ def salvage(path: str | Path, out_dir: str | Path) -> tuple[Path, int, int]:
     if out.exists():
         raise UserError(f"{out} exists: salvage into another -o")
     out.mkdir(parents=True)
-    renumbered = records.copy()
-    renumbered["seq"] = np.arange(len(renumbered), dtype=renumbered["seq"].dtype)
-    raw = renumbered.view(np.uint8).reshape(len(renumbered), renumbered.dtype.itemsize)
-    for i in range(len(renumbered)):
-        renumbered["crc"][i] = fmt.record_crc(raw[i], frames[i])
-    renumbered.tofile(out / fmt.STEPS)
-    frames.tofile(out / fmt.FRAMES)
     meta = dict(ep.meta)
-    meta["counts"] = {**(meta.get("counts") or {}), "steps": len(renumbered)}
-    meta["salvaged"] = {"from": str(path), "steps_kept": len(renumbered), "steps_in": total,
+    meta["counts"] = {**(meta.get("counts") or {}), "steps": len(records)}
+    meta["salvaged"] = {"from": str(path), "steps_kept": len(records), "steps_in": total,
                         "damaged_from_step": ep.damage.step}  # fmt: skip
-    fmt.write_json_atomic(out / fmt.META, meta)
-    fmt.write_json_atomic(out / fmt.SYNCED, {"steps": len(renumbered)})
+    fmt.write_records(out, records, frames, meta)
     if (path / "marks.json").is_file():  # marks are in seconds: they still mean the same steps
         shutil.copy2(path / "marks.json", out / "marks.json")
-    return out, len(renumbered), total
+    return out, len(records), total
