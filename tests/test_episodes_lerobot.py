@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+import pytest
 from episode_factory import mixed_steps, run_cli, write_episode
 
 from carrt.cli import main as carrt
@@ -234,3 +235,23 @@ def test_export_needs_a_new_folder_and_leaves_none_half_written(tmp_path, capsys
                              "-o", str(taken)], "exists")  # fmt: skip
     assert (taken / "mine.txt").read_text() == "a user's file"
     assert not (tmp_path / "taken.partial").exists()
+
+
+def test_imported_episodes_replay_as_the_recorded_ones(sim_episodes, tmp_path):
+    """The shipped policy replayed over the drives and over their import: the same actions to
+    within what a frame 2/255 off changes."""
+    from carrt.episodes import replay
+    from carrt.policy import OnnxPolicy
+    from carrt.shipped import SHIPPED_MODELS
+
+    export_lerobot([str(sim_episodes)], tmp_path / "lerobot")
+    paths = import_lerobot(tmp_path / "lerobot", tmp_path / "back")
+    policy = {"shipped": OnnxPolicy(SHIPPED_MODELS["demo"])}
+    originals = [read_episode(p) for p in list_episodes([str(sim_episodes)])]
+    for original, path in zip(originals, paths, strict=True):
+        a, b = replay.replay(original, policy), replay.replay(read_episode(path), policy)
+        np.testing.assert_array_equal(a.person, b.person)
+        np.testing.assert_array_equal(a.scored, b.scored)
+        moved = np.abs(a.actions["shipped"] - b.actions["shipped"])
+        assert moved.mean() < 0.01 and moved.max() < 0.1, (moved.mean(), moved.max())
+    assert replay.overall([a])["shipped"] == pytest.approx(replay.overall([b])["shipped"], abs=0.02)
