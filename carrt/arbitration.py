@@ -7,7 +7,7 @@ apart from `estop()`, the fast path: the joystick's reader thread calls it the m
 button is pressed or the pad is removed, and it calls `on_estop()` (the link's `estop()`, which
 writes an e-stop frame at once) from that thread instead of waiting for the next 10 Hz tick.
 
-Modes (DESIGN §4): DISARMED → MANUAL / AUTO → ESTOP, and ESTOP is latched: only an explicit
+Modes (docs/safety.md): DISARMED → MANUAL / AUTO → ESTOP, and ESTOP is latched: only an explicit
 clear (with a connected pad and neutral sticks) leaves it, and it leads to DISARMED, never
 straight back to driving. Every entry into ESTOP, from whichever thread, calls `on_estop()`
 exactly once.

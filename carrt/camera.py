@@ -3,7 +3,7 @@
 A capture thread reads frames as fast as the source delivers them and keeps only the newest,
 because a control loop fed from OpenCV's internal buffer would steer on frames that are
 several periods old. Each frame is stamped with the injected clock the moment read() returns:
-that stamp is what the loop compares against its age limit (DESIGN §5: older than 150 ms →
+that stamp is what the loop compares against its age limit (docs/safety.md: older than 150 ms →
 neutral, camera lost → e-stop), so it must be measured, never computed from a frame rate.
 
 A video file is paced at its own frame rate on the same clock, so a recorded drive replays

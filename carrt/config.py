@@ -355,7 +355,7 @@ def render(config: CarConfig | None = None) -> str:
     config = config or CarConfig()
     lines = [
         "# carrt car configuration. Every key is optional; unknown keys are errors.",
-        "# Reference: README.md, 'Configuration'. Override one key on the command line with",
+        "# Reference: docs/car.md, Configuration. Override one key on the command line with",
         "#   --set section.key=value",
         "",
     ]

@@ -4,7 +4,8 @@ The car's install carries only what every car needs (pyproject.toml): onnxruntim
 come from the platform on a Jetson (NVIDIA's onnxruntime-gpu, JetPack's OpenCV with GStreamer),
 and the simulator's and plots' packages come with the `laptop` extra. So a command can meet a
 package that is not there; it must then say which one and how to get it, exit 2, and never
-show a traceback. The hints live here, once, for the CLI and the training/export entry points.
+show a traceback. The hints live here, once, for the CLI and the entry points of training and
+export.
 """
 
 from __future__ import annotations
@@ -21,12 +22,12 @@ TRAIN = "pip install 'carrt[train]'"
 INSTALL_HINTS: dict[str, tuple[str, str]] = {
     "onnxruntime": (
         "onnxruntime",
-        f"on a laptop: {LAPTOP}; on a Jetson: NVIDIA's onnxruntime-gpu wheel (README, On a Jetson)",
+        f"on a laptop: {LAPTOP}; on a Jetson: NVIDIA's onnxruntime-gpu wheel (docs/jetson.md)",
     ),
     "cv2": (
         "OpenCV",
         f"on a laptop: {LAPTOP}; on a Jetson: JetPack's OpenCV, seen by a venv made with "
-        "--system-site-packages (README, On a Jetson)",
+        "--system-site-packages (docs/jetson.md)",
     ),
     "gymnasium": ("gymnasium (the simulator's environment API)", LAPTOP),
     "matplotlib": ("matplotlib (plots)", LAPTOP),

@@ -182,7 +182,7 @@ class Policy(Protocol):
 # ----------------------------------------------------------------------------- episodes
 @dataclass
 class Step:
-    """Everything recorded for one control period (DESIGN §7)."""
+    """Everything recorded for one control period (docs/episodes.md)."""
 
     index: int
     image: np.ndarray  # (96, 96, 3) uint8 RGB

@@ -5,11 +5,11 @@ wheel. The reader thread calls `on_estop()` the moment the e-stop button goes do
 disappears, so the e-stop frame is on the wire within one frame instead of at the next 10 Hz
 loop tick; nothing sleeps between taking the event off SDL's queue and that call.
 
-Wireless pads lie after a reconnect: an axis can report its last value, or full scale, until it
-is moved (DESIGN §5). So after every (re)connect `neutral_since_connect` stays False until every
-mapped axis has been *observed* inside the deadzone: an axis event, or a `get_axis()` reading of
-the opened device taken after SDL has pumped it once (before that SDL reports 0 for every axis,
-which would be exactly the lie we are guarding against).
+Wireless pads lie after a reconnect: an axis can report its last value, or full scale, until it is
+moved (docs/safety.md). So after every (re)connect `neutral_since_connect` stays False until every
+mapped axis has been *observed* inside the deadzone: an axis event, or a `get_axis()` reading of the
+opened device taken after SDL has pumped it once (before that SDL reports 0 for every axis, which
+would be exactly the lie we are guarding against).
 
 Layouts are SDL2's raw joystick indices (no GameController remapping) under SDL's Linux evdev
 driver: buttons numbered by evdev key code from BTN_JOYSTICK upwards, axes by ABS code without

@@ -1,4 +1,4 @@
-"""The paper's noise injection for teleop recording (DESIGN §2).
+"""The paper's noise injection for teleop recording (the DIRL paper).
 
 Why inject noise at all: a human driving well only ever shows the policy the middle of the
 track. DIRL perturbs the executed action for half of the collection time with uniform noise in

@@ -10,7 +10,7 @@ from carrt.interfaces import Plan
 
 
 class PlanBuffer:
-    """DESIGN §4: on an overrun, the next step of the previous plan may be used once; then
+    """The loop's rule: on an overrun, the next step of the previous plan may be used once; then
     neutral. A plan is a prediction from an older frame, so it is trusted for one extra
     period at most (the paper's horizon exists for training, not for driving blind).
     """

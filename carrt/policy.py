@@ -3,7 +3,7 @@
 Everything that can be wrong with a model file (missing, corrupt, wrong inputs, wrong horizon,
 no metadata, trained at another control period) is found here at load time and raised as one
 UserError line, so `carrt drive` refuses before the car is armed instead of steering on
-nonsense at the first tick (DESIGN §4, model_contract).
+nonsense at the first tick (carrt/model_contract.py).
 """
 
 from __future__ import annotations

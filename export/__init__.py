@@ -1,4 +1,4 @@
-"""Policy → one self-contained ONNX file the car can trust (DESIGN §9).
+"""Policy → one self-contained ONNX file the car can trust (docs/training.md#export).
 
 `export_policy` and `carrt-export` (by hand, and as a process at the end of every carrt-train
 run: training/ never imports export/) do the same thing: trace, attach carrt's metadata, check

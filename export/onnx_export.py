@@ -1,10 +1,10 @@
 """The trained policy as one ONNX file that carrt will accept and that computes what PyTorch did.
 
-Only the policy leaves training: the world model stays behind (DESIGN §9). The file is written
-under a temporary name and renamed into place only after it has passed, in this order: the
-ONNX checker, a no-external-data check, parity with PyTorch on recorded frames, and carrt's
-own loader (model_contract + OnnxPolicy + a warm-up). A file at out_path therefore always is
-a model the car accepts; a refused export leaves whatever was there before untouched.
+Only the policy leaves training: the world model stays behind (docs/training.md#export). The file is
+written under a temporary name and renamed into place only after it has passed, in this order: the
+ONNX checker, a no-external-data check, parity with PyTorch on recorded frames, and carrt's own
+loader (model_contract + OnnxPolicy + a warm-up). A file at out_path therefore always is a model the
+car accepts; a refused export leaves whatever was there before untouched.
 """
 
 from __future__ import annotations

@@ -2,15 +2,15 @@
 
     carrt-throttle-ceiling IN.onnx -o OUT.onnx --max-throttle 0.8
 
-Why a ceiling belongs to the policy file: a policy that imitates from one frame enters a tight
-bend faster than its demonstrator when the obstacle behind the bend is not yet in view, and a
-slightly slower car sees it in time (docs/demo_policy_validation.json: the shipped network's
-collisions on validation placements fell from 0.70 to 0.30 per minute at a ceiling of 0.8, at
-the expert's own pace). DonkeyCar users tune the same thing with a throttle multiplier in their
-config; carrt keeps it in the model, so whoever drives the file (`carrt drive`, `carrt eval`,
-`make demo`) drives what was measured. The ceiling is the contract's `carrt.action_high`,
-narrowed: carrt already clips every plan to its model's own bounds, so nothing new runs on the
-car. The board's `pwm.max_forward` still clamps whatever arrives.
+Why a ceiling belongs to the policy file: a policy that imitates from one frame enters a tight bend
+faster than its demonstrator when the obstacle behind the bend is not yet in view, and a slightly
+slower car sees it in time (research/results/demo_policy_validation.json: the shipped network's
+collisions on validation placements fell from 0.70 to 0.30 per minute at a ceiling of 0.8, at the
+expert's own pace). DonkeyCar users tune the same thing with a throttle multiplier in their config;
+carrt keeps it in the model, so whoever drives the file (`carrt drive`, `carrt eval`, `make demo`)
+drives what was measured. The ceiling is the contract's `carrt.action_high`, narrowed: carrt already
+clips every plan to its model's own bounds, so nothing new runs on the car. The board's
+`pwm.max_forward` still clamps whatever arrives.
 
 The network and every other metadata key are copied unchanged; the file is written under a
 temporary name and renamed into place only after carrt's own loader has accepted it.

@@ -172,7 +172,7 @@ class Receiver:
             raise ProtocolMismatch(
                 f"board on {self.port} speaks protocol {hello.protocol_hash:08x} (firmware "
                 f"{version}) but this carrt speaks {m.PROTOCOL_HASH:08x}: flash the firmware "
-                "shipped with this carrt (see README, 'Flashing the firmware')"
+                "shipped with this carrt (docs/car.md#flashing-the-firmware)"
             )
         info = BoardInfo(
             protocol_hash=hello.protocol_hash,

@@ -76,7 +76,7 @@ def open_port(port: str, baud: int) -> serial.Serial:
     if not port.startswith(("socket://", "rfc2217://", "loop://")) and not os.path.exists(port):
         raise PortUnavailable(
             f"serial port {port} does not exist (is the board plugged in? "
-            "use the /dev/serial/by-id/... path from the README)"
+            "use the /dev/serial/by-id/... path: docs/car.md#a-stable-port-name)"
         )
     try:
         return serial.Serial(port, baud, timeout=0.02, write_timeout=0.2, exclusive=True)

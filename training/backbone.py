@@ -1,8 +1,8 @@
-"""The image encoder both networks share: ResNet18 (DESIGN §2), with torchvision's names.
+"""The image encoder both networks share: ResNet18 (the DIRL paper), with torchvision's names.
 
 Its own module because it is the one part with an outside contract: its parameter names are
 torchvision's, so a user's pretrained ImageNet `resnet18` state dict loads into it, while
-torchvision itself stays out of the install (its wheel drags in a CUDA torch, DESIGN §3).
+torchvision itself stays out of the install (its wheel drags in a CUDA torch).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ class BasicBlock(nn.Module):
 class ResNet18Backbone(nn.Module):
     """ResNet18 without fc, channels scaled by `width` (64 = torchvision's resnet18 exactly).
 
-    Written here because torchvision's wheel drags in a CUDA torch (DESIGN §3); the parameter
+    Written here because torchvision's wheel drags in a CUDA torch; the parameter
     names are torchvision's, so pretrained ImageNet weights load from a state_dict file.
     """
 

@@ -22,7 +22,7 @@ class UsageError(UserError):
 @dataclass
 class IterateConfig:
     """Everything one iteration does. Defaults are the paper's numbers where it gives them
-    (DESIGN §2; "our choice" where it gives none). carrt's safeguards are one group below:
+    (the DIRL paper; "our choice" where it gives none). carrt's safeguards are one group below:
     all of them off is the paper's pure form. Research variants (research/variants/) are the
     last group; carrt-train refuses them. What was measured behind a default: research/LOG.md.
     """

@@ -27,13 +27,14 @@ must be able to check that claim. The project's own commands, top to bottom, eac
    ships with a throttle ceiling of 0.9 in its action range (`export.throttle_ceiling`): the
    single-frame policy enters tight bends faster than the expert and meets an obstacle behind
    the bend too late; the ceiling is chosen on validation placements 200-219 by a fixed rule,
-   never on the evaluation ones (docs/demo_policy_validation.json; 0.8 before the loop was
-   phase-locked to the camera, 0.9 when the rule was applied again after it).
+   never on the evaluation ones (research/results/demo_policy_validation.json; 0.8 before
+   the loop was phase-locked to the camera, 0.9 when the rule was applied again after it).
    `carrt-export --int8` refused an int8 variant of the network (error bound).
-   With --sloppy-world (off by default, measured level: docs/demo_policy_sloppy_world.json) the
-   last network is first refined in a world model of a sloppier person's demonstrations
-   (`carrt-sim-data demos --noise 0.5 --noise-tau 0.5` on 40 placements, then `carrt-train
-   --world-episodes`), the step that took collisions away in the simulation study at σ 0.
+   With --sloppy-world (off by default, measured level:
+   research/results/demo_policy_sloppy_world.json) the last network is first refined in a
+   world model of a sloppier person's demonstrations (`carrt-sim-data demos --noise 0.5
+   --noise-tau 0.5` on 40 placements, then `carrt-train --world-episodes`), the step that
+   took collisions away in the simulation study at σ 0.
 7. `carrt eval` on the held-out placements 100-104 of the `hard` layout (never recorded for
    training), 60 simulated seconds each, two seeds: the paper's table, saved as JSON.
 
@@ -61,7 +62,8 @@ SLOPPY_TRACKS = "1000-1039"  # the sloppier person's demonstrations (world model
 # off: on validation placements the refined network drove level with the one it started from
 # (what was measured: research/LOG.md)
 SLOPPY_WORLD = False
-THROTTLE_CEILING = 0.9  # chosen on validation placements 200-219 (docs/demo_policy_validation.json)
+# chosen on validation placements 200-219 (research/results/demo_policy_validation.json)
+THROTTLE_CEILING = 0.9
 
 
 def run(argv: list[str], done: Path | None = None) -> None:

@@ -83,8 +83,9 @@ DIRL_MEASURED = (
      "IL+refined:IL", 0.0, "-0.040 ± 0.005"),
     ("after three take-over rounds", "research/results/dirl_takeover_check.json.gz",
      "takeovers3+refined:takeovers3", 0.0, "-0.022 ± 0.025"),
-    ("only with a person whose errors last", "research/results/takeover_tau05_sigma0.5_5seeds"
-     ".json.gz", "takeovers2+refined:takeovers2", 0.5, "+0.038 ± 0.009"),
+    ("only with a person whose errors last",
+     "research/results/takeover_tau05_sigma0.5_5seeds.json.gz", "takeovers2+refined:takeovers2",
+     0.5, "+0.038 ± 0.009"),
 )  # fmt: skip
 DIRL_STATUS = (
     "--dirl: the world model and refinement are not validated: in the simulator the refined "

@@ -16,7 +16,7 @@ With `dirl` (carrt-train --dirl's second run, into OUT/refined/, and every run o
 research/variants/train.py) a run from scratch learns the policy by imitation, then the world
 model, then refines the policy in the world model's imagination. With --init it starts from the
 previous policy and world model (when that run has one), trains the world model on ALL the
-episodes given and refines; imitation does not run again (the paper's algorithm, DESIGN §2)
+episodes given and refines; imitation does not run again (the DIRL paper's algorithm)
 unless `reimitate` is set. With --world-episodes the world model learns those episodes instead
 (imitation and refinement still read --episodes). Its policy.pt is the last stage's.
 

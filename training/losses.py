@@ -1,4 +1,5 @@
-"""Evidential losses (DESIGN §2): regression for images and speed, classification for collisions.
+"""Evidential losses (the DIRL paper): regression for images and speed, classification for
+collisions.
 
 The reference implementations of these losses are known for NaNs. Everything here computes in
 float32 whatever the inputs' dtype (autocast, half precision), and the NIG negative log
@@ -42,7 +43,7 @@ class NIG:
 
     @classmethod
     def from_raw(cls, raw: Tensor, dim: int) -> NIG:
-        """Split four raw channels along `dim` and constrain them (DESIGN §2 pitfalls)."""
+        """Split four raw channels along `dim` and constrain them (σ, evidence positive)."""
         gamma, nu, alpha, beta = raw.unbind(dim)
         return cls(
             gamma=gamma,

@@ -1,4 +1,4 @@
-"""The policy and the world model ("Reveries-net"), with the paper's structure (DESIGN §2).
+"""The policy and the world model ("Reveries-net"), with the paper's structure (the DIRL paper).
 
 Both take the raw uint8 frame and the speed in m/s, exactly as carrt records and feeds them:
 the normalisation lives in buffers inside the modules, so it is saved with the weights and

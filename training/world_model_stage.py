@@ -1,7 +1,7 @@
 """Stage 2, the world model ("Reveries-net"): from image_t, speed_t and the H executed actions,
 predict the next H images, speeds and collision signals, each with evidential uncertainty.
 
-L_w = w_i·L_image + w_s·L_speed + w_c·L_collision (DESIGN §2). The input actions are the
+L_w = w_i·L_image + w_s·L_speed + w_c·L_collision (the DIRL paper). The input actions are the
 EXECUTED actions a (noise included): the world model learns what the car does under the
 commands it actually received, which is what the policy's sampled actions stand for during
 refinement. Targets are normalised with the run's stored Normalisation (evidential NLLs are

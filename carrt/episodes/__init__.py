@@ -1,4 +1,4 @@
-"""Crash-safe episode recording and reading (DESIGN §7). The reader needs numpy alone."""
+"""Crash-safe episode recording and reading (docs/episodes.md). The reader needs numpy alone."""
 
 from carrt.episodes.format import SCHEMA, STEP_DTYPE, run_metadata, step_dtype
 from carrt.episodes.reader import (

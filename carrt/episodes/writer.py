@@ -8,8 +8,8 @@ step would be training data lost, and lost differently from run to run (measured
 same 40 demonstration placements recorded 19,817 frames on an idle machine and 19,815 under load,
 2 steps dropped; a take-over round under load dropped 49). Everything that touches the disk
 happens on the writer thread: appending frames and records, an fsync at most `sync_every_s`
-after a step was appended (the power-cut budget of DESIGN §7), the atomic metadata at begin and
-end.
+after a step was appended (the power-cut budget of docs/episodes.md), the atomic metadata at
+begin and end.
 
 A full disk (ENOSPC, or EFBIG under a file-size limit) ends the episode where it stands: the
 files are cut back to the last whole step, the metadata says "disk full", `error` says so in one
