@@ -66,20 +66,27 @@ core: $(STAMP)
 demo: system-demo $(STAMP) core
 	$(PY) -m carrt.demo
 
-# The whole suite under 3.11 (with torch) in three processes: runtime, training (never in a
-# process that ran the simulator: see tests/e2e_rig.py record_sim_dataset), install; then the
-# runtime suite under 3.10 (without torch).
+# The whole suite under 3.11 (with torch): the runtime tests, the training tests (never in a
+# process that ran the simulator: see tests/e2e_rig.py record_sim_dataset), the install tests;
+# then the runtime tests under 3.10 (without torch). pytest-xdist runs the runtime tests in
+# RUNTIME_JOBS processes (most of their time is a drive in real time, waiting) and the training
+# tests in TRAINING_JOBS (torch on one thread each: one per core); the tests marked `alone`
+# measure how fast processes stop and run by themselves. Measured: docs/development.md.
+RUNTIME_JOBS ?= 3
+TRAINING_JOBS ?= 2
+TRAINING_TESTS = tests/test_train_*.py tests/test_research_train_*.py tests/test_export.py
 test: system-test $(STAMP) $(LEROBOT_STAMP) core
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
-	$(PY) -m pytest -q -m "not install" --ignore-glob='tests/test_train_*' \
+	$(PY) -m pytest -q -n $(RUNTIME_JOBS) -m "not install" --ignore-glob='tests/test_train_*' \
 		--ignore-glob='tests/test_research_train_*' --ignore=tests/test_export.py
-	$(PY) -m pytest -q tests/test_train_*.py tests/test_research_train_*.py tests/test_export.py
+	$(PY) -m pytest -q -n $(TRAINING_JOBS) -m "not alone" $(TRAINING_TESTS)
+	$(PY) -m pytest -q -m alone $(TRAINING_TESTS)
 	$(PY) -m pytest -q -m install
 	$(MAKE) test-py310
 
 test-py310: system-test $(STAMP310) core
-	$(PY310) -m pytest -q --runtime-only -m "not install" -p no:cacheprovider
+	$(PY310) -m pytest -q -n $(RUNTIME_JOBS) --runtime-only -m "not install" -p no:cacheprovider
 
 bench: $(STAMP)
 	$(PY) -m bench

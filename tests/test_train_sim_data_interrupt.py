@@ -39,6 +39,7 @@ def uninterrupted(tmp_path_factory) -> list[tuple[int, int]]:
     return _recorded(out)
 
 
+@pytest.mark.alone  # "ends within 10 s" is measured: not beside another test process
 @pytest.mark.parametrize(
     "sig, to",
     [(signal.SIGINT, "main process"), (signal.SIGINT, "process group"),
