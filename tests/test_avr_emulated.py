@@ -310,3 +310,19 @@ def test_carrt_drive_sim_runs_on_the_emulated_board():
     (distance,) = [line for line in done.stdout.splitlines() if line.startswith("distance")]
     metres = float(distance.split()[1])
     assert metres > 2.0, f"the car barely moved under the emulated board: {distance}"
+
+
+def test_the_firmware_size_in_the_docs_is_what_make_firmware_prints():
+    """docs/car.md shows `make firmware`'s size lines; they are the built firmware's own."""
+    import re
+    import subprocess
+
+    from firmware_bridge.avr_emulator import FIRMWARE_ELF, REPO, build
+
+    build((FIRMWARE_ELF,))
+    printed = subprocess.run(["avr-size", "-C", "--mcu=atmega328p", str(FIRMWARE_ELF)],
+                             capture_output=True, text=True, check=True).stdout  # fmt: skip
+    shown = (REPO / "docs" / "car.md").read_text()
+    for kind in ("Program", "Data"):
+        (line,) = re.findall(rf"^{kind}:\s+\d+ bytes \([\d.]+% Full\)", printed, re.M)
+        assert line in shown, f"docs/car.md should show `{line}`"

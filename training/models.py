@@ -217,7 +217,7 @@ class WorldModel(_Normalised):
     `profile.world_action_inputs` says where the actions enter. "first" is the paper's: the
     first GRU layer only, so every later state and every head sees an action only through
     states the image initialised, and a model fitted to drives where the action is a function
-    of the image can ignore it. "all" (issue 59, 3a) also feeds the step's action features to
+    of the image can ignore it. "all" (the study's variant) also feeds the step's action features to
     every later GRU layer (concatenated with the layer below's state) and to every head
     (concatenated with the state it reads): the collision head can read the action directly.
     "first" builds exactly the modules, parameters and forward it always did.

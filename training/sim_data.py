@@ -380,6 +380,9 @@ def main(argv: list[str] | None = None) -> int:
             )  # fmt: skip
     args = parser.parse_args(argv)
     previous = signal.signal(signal.SIGTERM, _interrupt)
+    # Ctrl-C as KeyboardInterrupt even when started from a script that ignores SIGINT (a
+    # background job of a shell without job control: Python then installs no handler of its own)
+    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         out = Path(args.out)
         tracks = parse_tracks(args.tracks)
@@ -410,6 +413,7 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     finally:
         signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGINT, previous_int)
     return 0
 
 

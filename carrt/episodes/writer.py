@@ -4,9 +4,8 @@ The loop must never wait for a disk (an SD card on a Jetson can stall for a seco
 write() only copies the frame and appends to a bounded queue; when the queue is full the step is
 dropped and counted, and the loop carries on. On the simulator's clock nothing is real time, so
 there the writer is made with `wait_when_full`: write() waits for room instead, since a dropped
-step would be training data lost, and lost differently from run to run (measured 2026-11-27: the
-same 40 demonstration placements recorded 19,817 frames on an idle machine and 19,815 under load,
-2 steps dropped; a take-over round under load dropped 49). Everything that touches the disk
+step would be training data lost, and lost differently from run to run (research/LOG.md: a
+recording under load dropped steps an idle one kept). Everything that touches the disk
 happens on the writer thread: appending frames and records, an fsync at most `sync_every_s`
 after a step was appended (the power-cut budget of docs/episodes.md), the atomic metadata at
 begin and end.

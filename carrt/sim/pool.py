@@ -2,9 +2,9 @@
 
 Every worker drives one placement on the simulated clock, so the parallelism belongs to the
 processes. Left alone, numpy's OpenBLAS (and any OpenMP library) starts one thread per core in
-every worker, and on a many-core machine the workers' thread pools fight: on a 16-core machine
-(the GPU study's, 2026-11-25) two demonstration placements at `--jobs 2` had not finished after
-40 s, and took 3.0 s with one BLAS thread per worker (2 cores here never showed it). The
+every worker, and on a many-core machine the workers' thread pools fight (research/LOG.md: two
+placements at `--jobs 2` on a 16-core machine had not finished after 40 s, and took 3.0 s with
+one BLAS thread per worker). The
 initializer limits each worker to one such thread: threadpoolctl for the libraries a worker has
 already loaded (a spawned worker imports its parent's main module first), the variables those
 libraries read at load time for the ones it loads later.
