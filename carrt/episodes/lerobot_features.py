@@ -21,7 +21,6 @@ from typing import Any
 
 import numpy as np
 
-from carrt.episodes import format as fmt
 from carrt.interfaces import HORIZON, IMAGE_SHAPE
 
 CODEBASE_VERSION = "v3.0"
@@ -60,10 +59,7 @@ class Feature:
     doc: str  # what it is, for docs/episodes.md (tests/test_episodes_lerobot.py checks it)
 
 
-def _plan_names() -> tuple[str, ...]:
-    return ("step", "steering_throttle")
-
-
+PLAN_NAMES = ("step", "steering_throttle")
 STEERING_THROTTLE = ("steering", "throttle")
 
 FEATURES: tuple[Feature, ...] = (
@@ -76,9 +72,9 @@ FEATURES: tuple[Feature, ...] = (
             "the policy's first planned action (NaN where no policy ran)"),
     Feature("carrt.executed_action", "executed_action", "float32", (2,), STEERING_THROTTLE,
             "the action sent to the board after arbitration (what the car did)"),
-    Feature("carrt.plan_mu", "plan_mu", "float32", (HORIZON, 2), _plan_names(),
+    Feature("carrt.plan_mu", "plan_mu", "float32", (HORIZON, 2), PLAN_NAMES,
             "the policy's plan μ over its horizon (NaN rows: no plan)"),
-    Feature("carrt.plan_sigma", "plan_sigma", "float32", (HORIZON, 2), _plan_names(),
+    Feature("carrt.plan_sigma", "plan_sigma", "float32", (HORIZON, 2), PLAN_NAMES,
             "the plan's σ over its horizon (NaN rows: no plan)"),
     Feature("carrt.mode", "mode", "uint8", (1,), None,
             "who drove: 0 DISARMED, 1 MANUAL, 2 AUTO, 3 ESTOP"),
@@ -145,8 +141,3 @@ def column(steps: np.ndarray, feature: Feature) -> np.ndarray:
     """A step field as the feature's array: (N,) for shape [1], else (N, *shape)."""
     values = np.asarray(steps[feature.field]).astype(feature.dtype)
     return values.reshape(len(steps), *feature.shape) if feature.shape != (1,) else values
-
-
-def empty_steps(n: int) -> np.ndarray:
-    """n zeroed step records to fill from columns (the import)."""
-    return np.zeros(n, dtype=fmt.STEP_DTYPE)

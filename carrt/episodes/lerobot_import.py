@@ -172,14 +172,18 @@ def import_lerobot(source: str | Path, out: str | Path, mapping: Mapping = Mappi
     for row, name in zip(episodes, names, strict=True):
         keys = {"chunk_index": row["data/chunk_index"], "file_index": row["data/file_index"]}
         data_path = root / info["data_path"].format(**keys)
-        table = tables.get(data_path) or tables.setdefault(data_path, _read_table(data_path))
+        if data_path not in tables:  # each file read once, however many episodes it holds
+            tables[data_path] = _read_table(data_path)
+        table = tables[data_path]
         rows = _episode_rows(table, row, data_path)
         video_path = root / info["video_path"].format(
             video_key=mapping.camera,
             chunk_index=row[f"videos/{mapping.camera}/chunk_index"],
             file_index=row[f"videos/{mapping.camera}/file_index"],
         )
-        video = videos.get(video_path) or videos.setdefault(video_path, decode_video(video_path))
+        if video_path not in videos:
+            videos[video_path] = decode_video(video_path)
+        video = videos[video_path]
         first = round(float(row[f"videos/{mapping.camera}/from_timestamp"]) * lf.FPS)
         missing = [k for k in range(len(rows)) if first + k not in video]
         if missing:
