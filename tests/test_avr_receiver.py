@@ -40,9 +40,13 @@ from firmware_bridge.timing import RC_LOSS_MS
 
 TRIALS = 12
 PERIOD_MS = 20.0
-# The loss rule polls each loop() pass at the board's 1 ms clock and the LED follows in the same
-# pass: the failsafe lands in (RC_LOSS_MS, RC_LOSS_MS + 2 ms].
-LOSS_LATE_MS = 2.0
+# The loss rule counts from the last pulse's end as stamped by the loop() pass that read it (the
+# board's 1 ms clock, read once a pass) and is checked once a pass, the LED following in the same
+# pass: after RC_LOSS_MS, plus the clock's 1 ms, plus up to two passes, the one that stamps the
+# pulse late and the one that finds the loss late (each under 1 ms: a COMMAND decoded, ~9,300
+# cycles, and a TELEMETRY sent, ~6,000, at 16 MHz). So (RC_LOSS_MS, RC_LOSS_MS + 3 ms]; a CI run
+# saw 102.16 ms, the issue-66 tester up to 103.0 on the binary before.
+LOSS_LATE_MS = 3.0
 # the steadied width is the median of the last five receiver pulses: one more to be sure
 SETTLE_FRAMES = 6
 
