@@ -20,7 +20,8 @@ import numpy as np
 
 from carrt.episodes import EpisodeWriter, read_episode
 from carrt.episodes import format as fmt
-from carrt.interfaces import HORIZON, Mode, Step
+from carrt.interfaces import Mode, Step
+from carrt.model_contract import HORIZON
 
 RATE_HZ = 10.0
 PACED_HZ = 200.0

@@ -30,7 +30,8 @@ from carrt.clock import WallClock
 from carrt.config import CameraConfig
 from carrt.errors import UserError
 from carrt.frame_lock import NewFrameSignal
-from carrt.interfaces import IMAGE_SHAPE, CameraFrame, Clock
+from carrt.interfaces import CameraFrame, Clock
+from carrt.model_contract import IMAGE_SHAPE
 
 # Pause between retries after a failed read on a live device, so a dead camera does not spin
 # a core; it is reported lost by the staleness rule meanwhile.

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from carrt.episodes import format as fmt
 from carrt.errors import UserError
-from carrt.interfaces import HORIZON
+from carrt.model_contract import HORIZON
 
 
 def step_bytes(horizon: int = HORIZON) -> int:

@@ -14,10 +14,6 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-IMAGE_SHAPE = (96, 96, 3)
-HORIZON = 10
-CONTROL_PERIOD_S = 0.1
-
 
 class Mode(enum.IntEnum):
     """Who drives. ESTOP is latched until the human clears it."""

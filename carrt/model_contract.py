@@ -29,6 +29,9 @@ OUTPUT_MU = "mu"
 OUTPUT_SIGMA = "sigma"
 
 IMAGE_SHAPE = (96, 96, 3)
+# H, the plan's steps when nothing else says: the paper's 1 s at 10 Hz. A model states its own
+# (carrt.horizon) and an episode records the one it was driven with; this is the default of both.
+HORIZON = 10
 ACTION_NAMES = ("steering", "throttle")
 # Throttle < 0 brakes (and, held at rest, reverses): the demonstrator brakes, so the policy's
 # range must include it. Models exported when the contract had throttle ≥ 0 (action_low

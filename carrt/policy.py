@@ -22,8 +22,10 @@ import onnxruntime as ort
 from carrt import model_contract as mc
 from carrt.config import LoopConfig
 from carrt.errors import UserError
-from carrt.interfaces import CONTROL_PERIOD_S, IMAGE_SHAPE, Plan
+from carrt.interfaces import Plan
+from carrt.model_contract import IMAGE_SHAPE
 from carrt.shipped import resolve_model
+from firmware_bridge.timing import CONTROL_PERIOD_S
 
 CPU = "CPUExecutionProvider"
 TENSORRT = "TensorrtExecutionProvider"

@@ -16,7 +16,7 @@ from onnx.external_data_helper import uses_external_data
 
 from carrt import model_contract as mc
 from carrt.errors import UserError
-from carrt.interfaces import CONTROL_PERIOD_S
+from firmware_bridge.timing import CONTROL_PERIOD_S
 
 OPSET = 17  # what TensorRT 8.6 (JetPack 5) parses
 CPU = "CPUExecutionProvider"

@@ -23,7 +23,6 @@ import onnx
 import carrt
 from carrt import model_contract as mc
 from carrt.errors import UserError
-from carrt.interfaces import CONTROL_PERIOD_S
 from carrt.policy import file_sha256
 from carrt.version import code_version
 from export.graph import (
@@ -37,6 +36,7 @@ from export.graph import (
     write_checked,
 )
 from export.parity import Frames, Parity, check_parity, sample_frames
+from firmware_bridge.timing import CONTROL_PERIOD_S
 
 DEFAULT_TOLERANCE = 1e-4  # fp32 PyTorch vs onnxruntime, absolute, on mu and sigma
 DEFAULT_MAX_FRAMES = 256

@@ -27,8 +27,8 @@ import onnx
 
 from carrt import model_contract as mc
 from carrt.errors import UserError
-from carrt.interfaces import CONTROL_PERIOD_S
 from export.graph import carrt_accepts, get_metadata, set_metadata, write_checked
+from firmware_bridge.timing import CONTROL_PERIOD_S
 
 THROTTLE = mc.ACTION_NAMES.index("throttle")
 

@@ -66,6 +66,8 @@ SEND_PERIOD_S = BY_NAME["SEND_PERIOD_S"].value
 HELLO_RETRY_S = BY_NAME["HELLO_RETRY_S"].value
 RECONNECT_RETRY_S = BY_NAME["RECONNECT_RETRY_S"].value
 LOOP_RATE_HZ = BY_NAME["LOOP_RATE_HZ"].value
+# the loop's tick, and the step every model is trained and exported at (carrt.control_period_s)
+CONTROL_PERIOD_S = 1.0 / LOOP_RATE_HZ
 CAMERA_MAX_AGE_S = BY_NAME["CAMERA_MAX_AGE_S"].value
 ENCODER_MAX_AGE_S = BY_NAME["ENCODER_MAX_AGE_S"].value
 BOARD_GRACE_S = BY_NAME["BOARD_GRACE_S"].value

@@ -52,9 +52,9 @@ from carrt.errors import EXIT_USAGE, UserError
 from carrt.sim.counterfactual import THROTTLE_RISE_PER_S
 from carrt.sim.metrics import TrajectoryRecorder
 from carrt.sim.world import SimWorld, StepInfo
+from firmware_bridge.timing import CONTROL_PERIOD_S
 from research.paths import at_root
 
-CONTROL_PERIOD_S = 0.1
 CHUNK_S = 0.01  # the driven period in 10 ms chunks: throttle rise limit and camera poses
 CAMERA_FPS = 30.0
 RESET_PAUSE_S = 1.0  # the car stands after an auto-reset: e-stop, settle, clear, arm (SimPilot)

@@ -11,7 +11,8 @@ import numpy as np
 
 from carrt.episodes import EpisodeWriter, run_metadata
 from carrt.episodes import cli as episodes_cli
-from carrt.interfaces import HORIZON, IMAGE_SHAPE, Mode, Step
+from carrt.interfaces import Mode, Step
+from carrt.model_contract import HORIZON, IMAGE_SHAPE
 
 
 def image_for(index: int, seed: int = 0) -> np.ndarray:

@@ -19,7 +19,8 @@ from carrt.episodes import format as fmt
 from carrt.episodes.summary import summarize
 from carrt.episodes.video import render_video
 from carrt.errors import UserError
-from carrt.interfaces import HORIZON, Mode
+from carrt.interfaces import Mode
+from carrt.model_contract import HORIZON
 
 
 # ----------------------------------------------------------------------------- round trip

@@ -21,8 +21,9 @@ import numpy as np
 from browser import chromium
 from view_rig import ROOT, carrt_with_view, request, state
 
-from carrt.interfaces import HORIZON, CameraFrame, LiveStatus, Mode, Plan
+from carrt.interfaces import CameraFrame, LiveStatus, Mode, Plan
 from carrt.loop import SECTIONS
+from carrt.model_contract import HORIZON
 from carrt.view.live import ESTOP_WHY, LiveFeed
 from carrt.view.server import ViewServer
 

@@ -23,7 +23,8 @@ import torch.nn.functional as F
 from torch.utils.data import Dataset, default_collate
 
 from carrt.episodes.reader import Episode, labels_before, read_episode
-from carrt.interfaces import IMAGE_SHAPE, Mode
+from carrt.interfaces import Mode
+from carrt.model_contract import IMAGE_SHAPE
 from training.episodes import (  # re-exported: the stages and tests import them from here
     data_digest,
     load_episodes,

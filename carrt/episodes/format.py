@@ -32,7 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from carrt.interfaces import HORIZON, IMAGE_SHAPE, Step
+from carrt.interfaces import Step
+from carrt.model_contract import HORIZON, IMAGE_SHAPE
 
 SCHEMA = "carrt.episode/1"
 SCHEMA_MAJOR = SCHEMA.rsplit("/", 1)[1]

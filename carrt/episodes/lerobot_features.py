@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from carrt.interfaces import HORIZON, IMAGE_SHAPE
+from carrt.model_contract import HORIZON, IMAGE_SHAPE
 
 CODEBASE_VERSION = "v3.0"
 FPS = 10  # the car's control rate: one step, one frame

@@ -29,7 +29,8 @@ from carrt.episodes import lerobot_features as lf
 from carrt.episodes.lerobot_export import optional_modules
 from carrt.episodes.reader import collision_labels
 from carrt.errors import UserError
-from carrt.interfaces import IMAGE_SHAPE, Mode
+from carrt.interfaces import Mode
+from carrt.model_contract import IMAGE_SHAPE
 
 TIMESTAMP_TOLERANCE_S = 1e-4  # LeRobot's reader's default tolerance_s
 

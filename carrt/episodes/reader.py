@@ -22,7 +22,8 @@ import numpy as np
 
 from carrt.episodes import format as fmt
 from carrt.errors import UserError
-from carrt.interfaces import IMAGE_SHAPE, Mode
+from carrt.interfaces import Mode
+from carrt.model_contract import IMAGE_SHAPE
 
 DRIVING = (int(Mode.MANUAL), int(Mode.AUTO))
 

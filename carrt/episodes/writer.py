@@ -35,7 +35,8 @@ import numpy as np
 from carrt import __version__
 from carrt.episodes import format as fmt
 from carrt.episodes.format import write_all  # a module name of its own: tests stall the disk here
-from carrt.interfaces import HORIZON, IMAGE_SHAPE, Clock, Step
+from carrt.interfaces import Clock, Step
+from carrt.model_contract import HORIZON, IMAGE_SHAPE
 
 _FULL_ERRNOS = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
 _RESERVED = {"schema", "format", "start", "end", "end_reason", "counts", "writer", "events"}

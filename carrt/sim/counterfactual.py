@@ -35,8 +35,8 @@ from carrt.sim.expert import ScriptedExpert
 from carrt.sim.render import Renderer
 from carrt.sim.track import LAYOUTS, project
 from carrt.sim.world import SimWorld
+from firmware_bridge.timing import CONTROL_PERIOD_S
 
-CONTROL_PERIOD_S = 0.1
 CHUNK_S = 0.01  # the throttle rise limit is applied every 10 ms
 THROTTLE_RISE_PER_S = 2.0  # the board's default pwm.slew_per_s (rises only; falls are immediate)
 STEERING_SHIFTS = (-0.6, -0.3, 0.3, 0.6)

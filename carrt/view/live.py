@@ -23,6 +23,7 @@ import numpy as np
 
 from carrt.interfaces import LiveStatus
 from carrt.view.server import Response, Route, json_response, page
+from firmware_bridge.timing import CONTROL_PERIOD_S
 
 JPEG_QUALITY = 85
 ESTOP_WHY = "browser view"
@@ -42,7 +43,7 @@ class LiveFeed:
         *,
         command: str,
         crop: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
-        period_s: float = 0.1,
+        period_s: float = CONTROL_PERIOD_S,
         now: Callable[[], float] = time.monotonic,
     ) -> None:
         self.status = status
