@@ -321,7 +321,7 @@ def test_report_runs_nothing_and_says_what_has_not_finished(tmp_path, capsys):
 def test_every_run_gets_the_refinement_method_and_its_safeguards():
     """The study's refinement settings reach iterate.py, and iterate.py accepts them."""
     from carrt.settings import apply_sets
-    from training.config import IterateConfig
+    from research.variants.config import ResearchConfig
 
     cfg = dirl_sim.parse(["--set", "refine_search=true", "--set", "refine_search_margin=0.5",
                           "--set", "refine_center_gradient=false",
@@ -331,7 +331,7 @@ def test_every_run_gets_the_refinement_method_and_its_safeguards():
     sets = [args[i + 1] for i, a in enumerate(args) if a == "--set"]
     assert {"refine_search=true", "refine_search_margin=0.5", "refine_center_gradient=false",
             "refine_candidates_every=100"} <= set(sets)  # fmt: skip
-    run = apply_sets(IterateConfig(), sets, "training/config.py")
+    run = apply_sets(ResearchConfig(), sets, "research/variants/config.py")
     assert run.refine_search is True and run.refine_search_margin == 0.5
     assert run.refine_center_gradient is False and run.refine_candidates_every == 100
     assert "refine_search=false" in dirl_sim.run_settings(dirl_sim.parse([]), 0, 0)

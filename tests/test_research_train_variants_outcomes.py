@@ -20,6 +20,7 @@ from episode_factory import make_step, write_episode  # noqa: E402
 
 from carrt.episodes.reader import read_episode  # noqa: E402
 from carrt.interfaces import Mode  # noqa: E402
+from research.variants.config import ResearchConfig  # noqa: E402
 from research.variants.refine_outcomes import (  # noqa: E402
     OutcomeDataset,
     advantage_weights,
@@ -29,7 +30,6 @@ from research.variants.refine_outcomes import (  # noqa: E402
 )
 from research.variants.train import main  # noqa: E402
 from training import checkpoint as ck  # noqa: E402
-from training.config import IterateConfig  # noqa: E402
 from training.models import PolicyNet  # noqa: E402
 from training.profiles import get_profile  # noqa: E402
 
@@ -109,9 +109,9 @@ def refined_steering(tmp_path, use_advantage: bool) -> float:
         speeds = np.full(30, 2.0 if good else 0.1)
         eps.append(drive_episode(tmp_path / str(k), k, steering=0.8 if good else -0.8,
                                  speeds=speeds))  # fmt: skip
-    cfg = IterateConfig(profile="tiny", refine_steps=40, refine_batch_size=16, refine_lr=3e-3,
-                        refine_w_imitation=0.0, outcome_advantage=use_advantage,
-                        ckpt_every=0, seed=0)  # fmt: skip
+    cfg = ResearchConfig(profile="tiny", refine_steps=40, refine_batch_size=16, refine_lr=3e-3,
+                         refine_w_imitation=0.0, outcome_advantage=use_advantage,
+                         ckpt_every=0, seed=0)  # fmt: skip
     torch.manual_seed(0)
     policy = PolicyNet(get_profile("tiny"))
     data = OutcomeDataset(eps, get_profile("tiny").horizon, 1.0, 10.0)

@@ -12,13 +12,14 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from carrt.sim.counterfactual import SEQUENCE_NAMES, sequences  # noqa: E402
+from research.variants.config import ResearchConfig  # noqa: E402
 from research.variants.refine_search import (  # noqa: E402
     SEARCH_SEQUENCES,
     alternatives,
     best_moves,
     search_step,
 )
-from training.config import PRESETS, IterateConfig  # noqa: E402
+from training.config import PRESETS  # noqa: E402
 from training.data import WindowDataset, compute_normalisation, load_episodes, take  # noqa: E402
 from training.models import PolicyNet  # noqa: E402
 from training.refine import train_refine  # noqa: E402
@@ -70,7 +71,7 @@ def _setup(sim_episodes):
     norm = compute_normalisation(episodes)
     windows = WindowDataset(episodes, 10, predict_size=16)
     torch.manual_seed(0)
-    cfg = dataclasses.replace(IterateConfig(profile="tiny"), **PRESETS["tiny"], progress=False)
+    cfg = dataclasses.replace(ResearchConfig(profile="tiny"), **PRESETS["tiny"], progress=False)
     policy = PolicyNet(cfg.profile_obj)
     policy.set_normalisation(norm)
     return cfg, policy, windows, norm

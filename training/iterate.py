@@ -64,6 +64,8 @@ from training.compare import DriveFailed, DriveSpec
 from training.config import IterateConfig, UsageError
 from training.iteration import run_guarded
 from training.iteration_args import Parser, add_iteration_args, config_from
+from training.loop_config import TrainingLoopConfig, add_loop_args, loop_config
+from training.loop_config import save as save_loop_config
 
 
 class _Help(argparse.RawDescriptionHelpFormatter):
@@ -106,30 +108,7 @@ def parse(argv: list[str] | None) -> tuple[argparse.Namespace, IterateConfig]:
                    help="also the world model and refinement in it (not validated: the status "
                    "line says what was measured), into OUT/refined/ beside the imitated "
                    "policy")  # fmt: skip
-    loop = p.add_argument_group("the loop (Algorithm 1; without --iterations: one iteration)")
-    loop.add_argument("--iterations", type=int, metavar="N",
-                      help="imitation into OUT/iter_0, then N take-over rounds (the policy drives "
-                      "and records while the person takes over; it imitates again) into "
-                      "OUT/iter_1..N")  # fmt: skip
-    loop.add_argument("--drive", choices=("car", "sim"), default="car",
-                      help="who drives each policy: car (the loop stops and says how; "
-                      "default) or sim (the simulator, in worker processes)")  # fmt: skip
-    loop.add_argument("--drive-tracks", default="1000-1009", metavar="SEEDS",
-                      help="sim: training placements to drive (default: %(default)s)")  # fmt: skip
-    loop.add_argument("--drive-layouts", default="hard", metavar="LIST",
-                      help="sim: layouts, taken in turn (default: %(default)s)")  # fmt: skip
-    loop.add_argument("--drive-seconds", type=float, default=60.0, metavar="S",
-                      help="sim: simulated s per placement (default: %(default)s)")  # fmt: skip
-    loop.add_argument("--compare-tracks", default=DriveSpec.tracks, metavar="SEEDS",
-                      help="sim: validation placements (200-259, hard) each iteration's policy "
-                      "is driven on against the one before it (default: %(default)s)")  # fmt: skip
-    loop.add_argument("--compare-seconds", type=float, default=DriveSpec.seconds, metavar="S",
-                      help="sim: simulated s per validation run (default: "
-                      "%(default)s)")  # fmt: skip
-    loop.add_argument("--compare-seeds", default=DriveSpec.seeds, metavar="LIST",
-                      help="sim: run seeds of each validation placement (default: "
-                      "%(default)s)")  # fmt: skip
-    loop.add_argument("--jobs", type=int, default=2, help="sim: drives at once (default: 2)")
+    add_loop_args(p.add_argument_group(TrainingLoopConfig.GROUPS[0][0]))
     a = p.parse_args(argv)
     cfg = config_from(a)
     if a.world_episodes and not a.dirl:
@@ -144,8 +123,7 @@ def parse(argv: list[str] | None) -> tuple[argparse.Namespace, IterateConfig]:
         raise UsageError("--dirl runs its two runs in one process: not under torchrun "
                          "(torchrun the iteration, then run it again with --dirl)")  # fmt: skip
     if a.iterations is not None:
-        if a.iterations < 1:
-            raise UsageError(f"--iterations must be >= 1, got {a.iterations}")
+        settings = loop_config(a)  # each flag against its declaration (training/loop_config.py)
         if a.init or a.world_episodes:
             raise UsageError("--iterations starts from the demonstrations: no --init or "
                              "--world-episodes")  # fmt: skip
@@ -154,6 +132,7 @@ def parse(argv: list[str] | None) -> tuple[argparse.Namespace, IterateConfig]:
         if int(os.environ.get("WORLD_SIZE", "1")) > 1:
             raise UsageError("the loop runs in one process: torchrun one iteration at a time")
         check_drives(a)
+        save_loop_config(settings, cfg.out)  # OUT/training_loop.json: how this loop drives
     return a, cfg
 
 
@@ -164,8 +143,6 @@ def check_drives(a: argparse.Namespace) -> None:
 
     spec = drive_spec(a)
     spec.check()
-    if a.jobs < 1:
-        raise UsageError(f"--jobs must be >= 1, got {a.jobs}")
     shared = sorted(set(parse_tracks(a.drive_tracks)) & set(spec.config()["tracks"]))
     if shared:
         raise UsageError(f"--drive-tracks and --compare-tracks share placement {shared[0]}: the "

@@ -86,7 +86,7 @@ class Variants:
     def check(self, cfg: IterateConfig) -> None:
         if self.refine is not None or self.report:
             return
-        asked = [name for name in RESEARCH_ONLY if getattr(cfg, name)]
+        asked = [name for name in RESEARCH_ONLY if getattr(cfg, name, False)]
         if asked:
             raise UsageError(
                 f"{asked[0]} is a research variant: run it with research/variants/train.py "

@@ -1,6 +1,6 @@
 """carrt-train's flags for one iteration, and the IterateConfig they make (training/config.py);
 the loop's flags (training/iterate.py) extend them. Kept apart from training/iteration.py so the
-run reads on its own."""
+run reads on its own. research/variants/train.py makes its ResearchConfig with the same flags."""
 
 from __future__ import annotations
 
@@ -18,8 +18,24 @@ class Parser(argparse.ArgumentParser):
         raise UsageError(message)
 
 
-def add_iteration_args(p: argparse.ArgumentParser) -> None:
-    """The flags of one iteration (carrt-train's, which iterate.py's loop flags extend)."""
+class ListSettings(argparse.Action):
+    """`--settings`: every setting with its doc, default (and the profiles' presets) and the
+    values it allows, printed like `--help` prints the flags, then exit 0."""
+
+    def __init__(self, option_strings, dest, config_class=IterateConfig, **kwargs):
+        self.config_class = config_class
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from training.settings_doc import listing
+
+        print(listing(self.config_class, parser.prog))
+        parser.exit()
+
+
+def add_iteration_args(p: argparse.ArgumentParser, config_class: type = IterateConfig) -> None:
+    """The flags of one iteration (carrt-train's, which iterate.py's loop flags extend);
+    `config_class` is the settings dataclass --set and --settings read."""
     p.add_argument("--episodes", nargs="+", required=True, metavar="DIR")
     p.add_argument(
         "--world-episodes", nargs="+", default=[], metavar="DIR",
@@ -42,17 +58,24 @@ def add_iteration_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", help="auto | cpu | cuda | cuda:N")
     p.add_argument(
         "--set", action="append", default=[], metavar="FIELD=VALUE",
-        help="any IterateConfig field (training/config.py), e.g. refine_lr=1e-5; repeatable",
+        help="change one setting, e.g. refine_lr=1e-5 (--settings lists them all); repeatable",
+    )  # fmt: skip
+    p.add_argument(
+        "--settings", action=ListSettings, config_class=config_class,
+        help="list every --set setting with its doc, default and allowed values, and exit",
     )  # fmt: skip
 
 
-def config_from(a: argparse.Namespace) -> IterateConfig:
-    """The IterateConfig of parsed iteration flags: defaults, the profile's preset, then the
-    flags, then --set."""
+def config_from(
+    a: argparse.Namespace, config_class: type = IterateConfig, prog: str = "carrt-train"
+) -> IterateConfig:
+    """The `config_class` (IterateConfig, or research's extension of it) of parsed iteration
+    flags: defaults, the profile's preset, then the flags, then --set; `prog` names the
+    command in a --set error."""
     profile = a.profile or (init_profile(a.init) if a.init else "cpu")
     if profile not in PROFILES:
         raise UsageError(f"unknown profile {profile!r}; choose one of {', '.join(PROFILES)}")
-    cfg = IterateConfig(
+    cfg = config_class(
         episodes=tuple(a.episodes), world_episodes=tuple(a.world_episodes), out=a.out,
         init=a.init, profile=profile,
     )  # fmt: skip
@@ -71,7 +94,7 @@ def config_from(a: argparse.Namespace) -> IterateConfig:
             cfg = dataclasses.replace(cfg, **{name: getattr(a, name)})
     if a.no_uncertainty:
         cfg = dataclasses.replace(cfg, no_uncertainty=True)
-    cfg = apply_set(cfg, a.set)
+    cfg = apply_set(cfg, a.set, prog)
     cfg.validate()
     return cfg
 

@@ -298,7 +298,7 @@ def check_run(run: Path, data_path: Path | None, layout: str, tracks: str, start
         if not data_path.is_file() or load(data_path)["meta"]["model_sha256"] != file_sha256(onnx):
             generate(onnx, data_path, layout, tracks, starts, seed=0)
     world_model, ckpt = ck.load_world_model(wm_path)
-    cfg = SimpleNamespace(**ckpt["config"])  # the run's IterateConfig, as its checkpoint saved it
+    cfg = SimpleNamespace(**ckpt["config"])  # the run's ResearchConfig, as its checkpoint saved it
     result = score(world_model, load(data_path), cfg)
     result["data"] = str(data_path)
     return result

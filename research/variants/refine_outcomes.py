@@ -41,7 +41,7 @@ from training.refine import candidate_keeper, demonstration_batch
 from training.trainer import RunContext, StageResult, StageSpec, run_stage
 
 if TYPE_CHECKING:
-    from training.config import IterateConfig
+    from research.variants.config import ResearchConfig
 
 RIDGE = 1.0  # ridge penalty of the value baseline, on standardised features
 
@@ -160,7 +160,7 @@ def policy_features(policy: nn.Module, dataset: OutcomeDataset, device, batch: i
     return np.concatenate(out) if out else np.zeros((0, 0), dtype=np.float32)
 
 
-def outcome_weights(cfg: IterateConfig, policy: nn.Module, dataset: OutcomeDataset, device):
+def outcome_weights(cfg: ResearchConfig, policy: nn.Module, dataset: OutcomeDataset, device):
     """(weights (N,), diagnostics): the advantage weights of the drives' windows under the
     policy refinement starts from, and how well the baseline explains the returns."""
     features = policy_features(policy, dataset, device)
@@ -187,7 +187,7 @@ def outcome_weights(cfg: IterateConfig, policy: nn.Module, dataset: OutcomeDatas
 
 
 def train_refine_outcomes(
-    cfg: IterateConfig,
+    cfg: ResearchConfig,
     policy: nn.Module,
     dataset: OutcomeDataset,
     ctx: RunContext | None = None,
@@ -233,7 +233,7 @@ def train_refine_outcomes(
     )
 
 
-def refine_by_outcomes(cfg: IterateConfig, policy, data, ctx: RunContext, resume, demonstrations):
+def refine_by_outcomes(cfg: ResearchConfig, policy, data, ctx: RunContext, resume, demonstrations):
     """The refinement stage with `refine_outcomes` (research/variants/train.py): the drives'
     windows of the training episodes (data: stage_data.StageData), their weights computed once
     under the policy the stage starts from and kept in OUT/outcome_weights.npy (a resumed run

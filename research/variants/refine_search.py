@@ -13,7 +13,7 @@ policy's μ is pulled toward it by L1, weighed like imitation's (`refine_w_searc
 does, the plan is its own target and that start adds nothing. No gradient flows through the
 world model. σ is not trained (nothing samples with it).
 
-`refine_search` (IterateConfig) switches it on in place of the gradient; off is the paper's
+`refine_search` (ResearchConfig) switches it on in place of the gradient; off is the paper's
 form. The other safeguards (anchor, imitation on the demonstrations) apply as they do to the
 gradient. The check reports how often the search's move is right (`search` in its output),
 per margin, so a margin can be chosen on the check's placements rather than the test ones.
@@ -28,7 +28,7 @@ import torch
 from training.refine import sequence_objective
 
 if TYPE_CHECKING:
-    from training.config import IterateConfig
+    from research.variants.config import ResearchConfig
 
 # The alternatives, in the order and with the names of carrt.sim.counterfactual's sequences
 # (its "random" left out: a search needs no baseline), so the check can score exactly this set.
@@ -81,7 +81,7 @@ def search_loss(mu: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     return (mu - targets).abs().mean()
 
 
-def search_step(cfg: IterateConfig, world_model, batch: dict, actions, mu, weights: tuple):
+def search_step(cfg: ResearchConfig, world_model, batch: dict, actions, mu, weights: tuple):
     """`refine_search`: L1 from μ to the imagined-best alternative (this module).
     0·Σ actions keeps σ in the graph, as imitation does, for DistributedDataParallel."""
     targets, chosen = search_targets(

@@ -3,7 +3,8 @@
     python research/variants/train.py --episodes data/ --out runs/r --init runs/iter1 \\
         --set refine_search=true --set counterfactual_starts=6
 
-Same flags as `carrt-train`, and one run is one DIRL iteration in place (training/iteration.py
+Same flags as `carrt-train` (its settings: ResearchConfig, research/variants/config.py, which
+`--settings` lists), and one run is one DIRL iteration in place (training/iteration.py
 with `dirl`: imitation → world model → refinement, OUT/policy.* the last stage's policy, as the
 study's chains read it); on top of them:
 
@@ -19,13 +20,18 @@ The product never imports this: the variants plug in through training.iteration.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
 if __package__ in (None, ""):  # run as a script: make `research` and `training` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+from research.variants.config import ResearchConfig
 from training import iteration
+from training.iteration_args import Parser, add_iteration_args, config_from
+
+PROG = "research/variants/train.py"
 
 
 def refine(cfg, policy, world_model, data, norm, ctx, resume, demonstrations):
@@ -97,7 +103,15 @@ def main(argv: list[str] | None = None) -> int:
     """One run, the world model and refinement on (`dirl`: their steps as the study sets them,
     its policy.* the last stage's), as every study command ran before carrt-train made them
     opt-in (--dirl, into OUT/refined/)."""
-    return iteration.main(argv, VARIANTS, prog="research/variants/train.py", dirl=True)
+    return iteration.guarded(lambda: research_config(argv), VARIANTS)
+
+
+def research_config(argv: list[str] | None) -> ResearchConfig:
+    """carrt-train's flags of one iteration made into a ResearchConfig, `dirl` on."""
+    p = Parser(prog=PROG, description=__doc__.split("\n")[0])
+    add_iteration_args(p, ResearchConfig)
+    cfg = config_from(p.parse_args(argv), ResearchConfig, PROG)
+    return dataclasses.replace(cfg, dirl=True)
 
 
 if __name__ == "__main__":
