@@ -40,8 +40,11 @@ def _steps(n: int) -> list[Step]:
     for i in range(n):
         t = 100.0 + i / RATE_HZ
         out.append(
-            Step(i, images[i % 16], t, t + 0.01, 1.7e9 + t, 1.5, i * 7, (0.1, 0.5), (0.1, 0.5),
-                 (0.1, 0.5), Mode.AUTO, False, False, False, False, False, plan, plan * 0.1)
+            Step(index=i, image=images[i % 16], frame_captured_at=t, command_sent_at=t + 0.01,
+                 wall_time=1.7e9 + t, speed_mps=1.5, encoder_ticks=i * 7, human_action=(0.1, 0.5),
+                 policy_action=(0.1, 0.5), executed_action=(0.1, 0.5), mode=Mode.AUTO,
+                 override=False, estop=False, noise=False, collision=False, lap=False,
+                 plan_mu=plan, plan_sigma=plan * 0.1)
         )  # fmt: skip
     return out
 

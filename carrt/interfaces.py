@@ -8,11 +8,14 @@ cannot tell which it has and every stand-in is a first-class implementation, not
 
 from __future__ import annotations
 
+import dataclasses
 import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, make_dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+
+from carrt.model_contract import IMAGE_SHAPE
 
 
 class Mode(enum.IntEnum):
@@ -176,28 +179,69 @@ class Policy(Protocol):
 
 
 # ----------------------------------------------------------------------------- episodes
-@dataclass
-class Step:
-    """Everything recorded for one control period (docs/episodes.md)."""
+@dataclass(frozen=True)
+class StepField:
+    """One field of a Step: what the loop fills in each period, and its column in steps.bin."""
 
-    index: int
-    image: np.ndarray  # (96, 96, 3) uint8 RGB
-    frame_captured_at: float  # clock seconds
-    command_sent_at: float  # clock seconds when the command was written to the link
-    wall_time: float  # unix seconds at the tick, for humans
-    speed_mps: float
-    encoder_ticks: int
-    human_action: tuple[float, float]  # a*: what the human's sticks said (steering, throttle)
-    policy_action: tuple[float, float]  # first step of μ when AUTO, else (nan, nan)
-    executed_action: tuple[float, float]  # a: what was sent to the board
-    mode: Mode
-    override: bool  # human took over from the policy this step (intervention edge)
-    estop: bool  # e-stop latched this step
-    noise: bool  # noise was injected into the executed action
-    collision: bool  # a collision event happened at this step (sim, or e-stop in drive)
-    lap: bool  # the lap-marker button was pressed at this step
-    plan_mu: np.ndarray | None = None  # (H, 2) when AUTO
-    plan_sigma: np.ndarray | None = None  # (H, 2) when AUTO
+    name: str
+    type: str  # the Step attribute's annotation
+    disk: str  # numpy type of its column in steps.bin; "" for the image, which is in frames.u8
+    shape: tuple[int | str, ...] = ()  # per step; "horizon": the episode's plan horizon (rows)
+    doc: str = ""
+    optional: bool = False  # None when absent (the Step's default)
+
+
+# Everything recorded for one control period (docs/episodes.md), in the record's byte order.
+# The Step below and the on-disk record (carrt/episodes/format.py step_dtype) are both built
+# from this table, so they cannot disagree; reordering or retyping a row changes the bytes of
+# every recorded episode, which is a new format version, not a refactor.
+STEP_FIELDS: tuple[StepField, ...] = (
+    StepField("index", "int", "<i8", doc="the loop's step index (gaps: steps the writer dropped)"),
+    StepField("image", "np.ndarray", "", IMAGE_SHAPE, "uint8 RGB, the policy's input as it saw it"),
+    StepField("frame_captured_at", "float", "<f8", doc="clock seconds"),
+    StepField("command_sent_at", "float", "<f8",
+              doc="clock seconds when the command was written to the link"),
+    StepField("wall_time", "float", "<f8", doc="unix seconds at the tick, for humans"),
+    StepField("encoder_ticks", "int", "<i8", doc="the board's count, as last reported"),
+    StepField("speed_mps", "float", "<f4", doc="metres per second"),
+    StepField("human_action", "tuple[float, float]", "<f4", (2,),
+              "a*: what the human's sticks said (steering, throttle)"),
+    StepField("policy_action", "tuple[float, float]", "<f4", (2,),
+              "first step of mu when AUTO, else (nan, nan)"),
+    StepField("executed_action", "tuple[float, float]", "<f4", (2,),
+              "a: what was sent to the board"),
+    StepField("plan_mu", "np.ndarray | None", "<f4", ("horizon", 2),
+              "the fresh plan's mean, when AUTO", optional=True),
+    StepField("plan_sigma", "np.ndarray | None", "<f4", ("horizon", 2),
+              "the fresh plan's standard deviation, when AUTO", optional=True),
+    StepField("mode", "Mode", "u1", doc="who drove"),
+    StepField("override", "bool", "?", doc="human took over from the policy (intervention edge)"),
+    StepField("estop", "bool", "?", doc="e-stop latched this step"),
+    StepField("noise", "bool", "?", doc="noise was injected into the executed action"),
+    StepField("collision", "bool", "?",
+              doc="a collision event happened at this step (sim, or e-stop in drive)"),
+    StepField("lap", "bool", "?", doc="the lap-marker button was pressed at this step"),
+)  # fmt: skip
+
+
+def _step_record() -> type:
+    """The Step dataclass from STEP_FIELDS: keyword-only (eighteen fields are not positional),
+    its docstring the table's docs."""
+    doc = "Everything recorded for one control period (docs/episodes.md).\n\n" + "\n".join(
+        f"{f.name}: {f.doc}" for f in STEP_FIELDS
+    )
+    return make_dataclass(
+        "Step",
+        [
+            (f.name, f.type, dataclasses.field(default=None)) if f.optional else (f.name, f.type)
+            for f in STEP_FIELDS
+        ],
+        kw_only=True,
+        namespace={"__module__": __name__, "__doc__": doc},
+    )
+
+
+Step = _step_record()
 
 
 @runtime_checkable

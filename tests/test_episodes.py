@@ -70,6 +70,38 @@ def test_the_step_dtype_is_rebuilt_without_pythons_parser(monkeypatch):
     assert fmt.dtype_from_json(fmt.dtype_to_json(fmt.step_dtype(3))) == fmt.step_dtype(3)
 
 
+# carrt.episode/1's record as every recorded episode has it: the Step's field table
+# (carrt/interfaces.py STEP_FIELDS) must keep making it, byte for byte.
+EPISODE_1_RECORD = {
+    "names": ["magic", "seq", "index", "frame_captured_at", "command_sent_at", "wall_time",
+              "encoder_ticks", "speed_mps", "human_action", "policy_action", "executed_action",
+              "plan_mu", "plan_sigma", "mode", "override", "estop", "noise", "collision", "lap",
+              "_reserved", "crc"],
+    "formats": ["<u4", "<u4", "<i8", "<f8", "<f8", "<f8", "<i8", "<f4", "(2,)<f4", "(2,)<f4",
+                "(2,)<f4", "(10, 2)<f4", "(10, 2)<f4", "|u1", "|b1", "|b1", "|b1", "|b1", "|b1",
+                "(2,)|u1", "<u4"],
+    "offsets": [0, 4, 8, 16, 24, 32, 40, 48, 52, 60, 68, 76, 156, 236, 237, 238, 239, 240, 241,
+                242, 244],
+    "itemsize": 248,
+}  # fmt: skip
+
+
+def test_the_step_table_makes_the_recorded_layout_and_bytes():
+    """The dtype and the Step are both built from one table; what they make is pinned here to
+    what carrt.episode/1 has always written (the CRCs of two records packed before the table)."""
+    import dataclasses
+    import zlib
+
+    from carrt.interfaces import STEP_FIELDS, Step
+
+    assert fmt.dtype_to_json(fmt.step_dtype(10)) == EPISODE_1_RECORD
+    assert [f.name for f in dataclasses.fields(Step)] == [f.name for f in STEP_FIELDS]
+    assert fmt.FLAGS == ("override", "estop", "noise", "collision", "lap")
+    for mode, crc in ((Mode.AUTO, 0x88CC0DC8), (Mode.MANUAL, 0x34817FDE)):
+        step = make_step(3, mode=mode, override=True, lap=True)
+        assert zlib.crc32(fmt.pack_step(step, step.image.tobytes(), 3)) == crc
+
+
 def test_frames_are_a_read_only_memmap(tmp_path):
     ep = read_episode(write_episode(tmp_path, mixed_steps(5)))
     assert isinstance(ep.frames, np.memmap)

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from carrt.interfaces import Step
+from carrt.interfaces import STEP_FIELDS, Step, StepField
 from carrt.model_contract import HORIZON, IMAGE_SHAPE
 
 SCHEMA = "carrt.episode/1"
@@ -53,31 +53,25 @@ END_DISK_FULL = "disk full"
 END_WRITE_ERROR = "write error"
 COLLISION_END_REASONS = ("collision", "estop")
 
-FLAGS = ("override", "estop", "noise", "collision", "lap")
+# the on-disk columns of STEP_FIELDS, in record order; the flags are its one-byte bools
+COLUMNS = tuple(f for f in STEP_FIELDS if f.disk)
+FLAGS = tuple(f.name for f in COLUMNS if f.disk == "?")
 
 
 def step_dtype(horizon: int = HORIZON) -> np.dtype:
-    """The record layout; fields are naturally aligned and the record is a multiple of 8 bytes.
+    """The record layout: a magic number and the record's number, the Step's columns
+    (carrt/interfaces.py STEP_FIELDS) in their order, padding, a CRC. Fields are naturally
+    aligned and the record is a multiple of 8 bytes.
 
     `crc` must stay the last 4 bytes: it is CRC-32 over the record's other bytes, then the frame.
     """
-    fields = [
+    fields: list[tuple[Any, ...]] = [
         ("magic", "<u4"),
         ("seq", "<u4"),  # record number in this file: a record copied to the wrong place fails
-        ("index", "<i8"),  # the loop's step index (gaps = steps the writer dropped)
-        ("frame_captured_at", "<f8"),
-        ("command_sent_at", "<f8"),
-        ("wall_time", "<f8"),
-        ("encoder_ticks", "<i8"),
-        ("speed_mps", "<f4"),
-        ("human_action", "<f4", (2,)),
-        ("policy_action", "<f4", (2,)),
-        ("executed_action", "<f4", (2,)),
-        ("plan_mu", "<f4", (horizon, 2)),
-        ("plan_sigma", "<f4", (horizon, 2)),
-        ("mode", "u1"),
-        *((name, "?") for name in FLAGS),
     ]
+    for column in COLUMNS:
+        shape = tuple(horizon if d == "horizon" else d for d in column.shape)
+        fields.append((column.name, column.disk, shape) if shape else (column.name, column.disk))
     size = np.dtype(fields).itemsize + 4
     pad = -size % 8
     if pad:
@@ -152,39 +146,47 @@ def plan_rows(plan: np.ndarray | None, horizon: int) -> np.ndarray:
     return out
 
 
-# The fixed head of every record (magic … executed_action) and the mode + flags bytes: packing
-# with struct keeps the writer thread's hold on the GIL short, so the loop thread rarely waits.
-_HEAD = struct.Struct("<IIqdddqf2f2f2f")
-_MODE_FLAGS = struct.Struct(f"<{1 + len(FLAGS)}B")
-assert STEP_DTYPE.fields["plan_mu"][1] == _HEAD.size, "step_dtype and _HEAD disagree"
-assert STEP_DTYPE.fields["mode"][1] + _MODE_FLAGS.size == STEP_DTYPE.fields[FLAGS[-1]][1] + 1
+# The columns before the plans (magic … executed_action) and after them (mode, flags), each
+# packed by one struct call: that keeps the writer thread's hold on the GIL short, so the loop
+# thread rarely waits. The plans, sized by the episode's horizon, are copied in between.
+_STRUCT_CODE = {"<u4": "I", "<i8": "q", "<f8": "d", "<f4": "f", "u1": "B", "?": "?"}
+_PLANS = tuple(f.name for f in COLUMNS if "horizon" in f.shape)
+_FIRST_PLAN = COLUMNS.index(next(f for f in COLUMNS if f.name == _PLANS[0]))
+_HEAD_COLUMNS = COLUMNS[:_FIRST_PLAN]
+_TAIL_COLUMNS = COLUMNS[_FIRST_PLAN + len(_PLANS) :]
+
+
+def _struct(columns: tuple[StepField, ...], prefix: str = "") -> struct.Struct:
+    codes = (_STRUCT_CODE[f.disk] * int(np.prod(f.shape, dtype=int)) for f in columns)
+    return struct.Struct("<" + prefix + "".join(codes))
+
+
+_HEAD = _struct(_HEAD_COLUMNS, prefix="II")  # magic, seq, then the Step's
+_TAIL = _struct(_TAIL_COLUMNS)
+_HEAD_VALUES = [(f.name, bool(f.shape)) for f in _HEAD_COLUMNS]  # (name, is a pair)
+assert STEP_DTYPE.fields[_PLANS[0]][1] == _HEAD.size, "step_dtype and _HEAD disagree"
+assert all(COLUMNS[_FIRST_PLAN + i].name == name for i, name in enumerate(_PLANS))
+_TAIL_LAST = STEP_DTYPE.fields[_TAIL_COLUMNS[-1].name]
+assert STEP_DTYPE.fields[_TAIL_COLUMNS[0].name][1] + _TAIL.size == _TAIL_LAST[1] + 1
 
 
 def pack_step(step: Step, image: bytes, seq: int, dtype: np.dtype = STEP_DTYPE) -> bytes:
     """One record, CRC included. `image` is the frame's 27648 bytes as they go to frames.u8."""
     fields = dtype.fields
-    horizon = fields["plan_mu"][0].shape[0]
+    horizon = fields[_PLANS[0]][0].shape[0]
     raw = bytearray(dtype.itemsize)
-    _HEAD.pack_into(
-        raw,
-        0,
-        MAGIC,
-        seq,
-        step.index,
-        step.frame_captured_at,
-        step.command_sent_at,
-        step.wall_time,
-        step.encoder_ticks,
-        step.speed_mps,
-        *step.human_action,
-        *step.policy_action,
-        *step.executed_action,
-    )
-    for name in ("plan_mu", "plan_sigma"):
+    head: list[Any] = [MAGIC, seq]
+    for name, pair in _HEAD_VALUES:
+        if pair:
+            head.extend(getattr(step, name))
+        else:
+            head.append(getattr(step, name))
+    _HEAD.pack_into(raw, 0, *head)
+    for name in _PLANS:
         offset = fields[name][1]
         raw[offset : offset + 8 * horizon] = plan_rows(getattr(step, name), horizon).tobytes()
-    flags = (bool(getattr(step, name)) for name in FLAGS)
-    _MODE_FLAGS.pack_into(raw, fields["mode"][1], int(step.mode), *flags)
+    tail = (getattr(step, f.name) for f in _TAIL_COLUMNS)
+    _TAIL.pack_into(raw, fields[_TAIL_COLUMNS[0].name][1], *tail)
     crc = zlib.crc32(image, zlib.crc32(memoryview(raw)[:-4]))
     raw[-4:] = crc.to_bytes(4, "little")
     return bytes(raw)
