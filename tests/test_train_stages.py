@@ -26,8 +26,8 @@ from training.evaluate import action_response, auroc, spearman  # noqa: E402
 from training.imitation import imitation_loss, train_imitation  # noqa: E402
 from training.refine import (  # noqa: E402
     anchor_penalty,
-    gradient_step,
     held_out_objective,
+    imagined_objective,
     train_refine,
 )
 from training.trainer import param_digest  # noqa: E402
@@ -191,7 +191,7 @@ def test_without_refine_steering_the_world_model_gradient_reaches_only_the_throt
         for centred in (False, True):
             actions = batch["actions"].clone().requires_grad_(True)
             cfg = tiny(refine_steering=steering, refine_center_gradient=centred)
-            loss, _ = gradient_step(cfg, world_model, batch, actions, (1.0, 10.0, 1.0))
+            loss, _ = imagined_objective(cfg, world_model, batch, actions, (1.0, 10.0, 1.0))
             loss.backward()
             grads[steering, centred] = actions.grad.clone()
     for centred in (False, True):

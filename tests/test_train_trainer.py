@@ -1,4 +1,4 @@
-"""The stage runner and its checkpoints, on the simulator's episodes (tiny profile).
+"""The stages' shared loop machinery and its checkpoints, on the simulator's episodes.
 
 An interrupted stage must resume exactly, Ctrl-C must finish the step then checkpoint, a
 checkpoint must round-trip (keeping its profile's sizes) and refuse what is not one; the
@@ -23,9 +23,7 @@ from training.trainer import (  # noqa: E402
     Budget,
     Interrupted,
     RunContext,
-    StageSpec,
     StopRequested,
-    run_stage,
 )
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
@@ -62,7 +60,9 @@ def test_an_interrupted_stage_resumes_exactly(data, tmp_path):
     assert ck.load_checkpoint(tmp_path / "imitation.pt")["step"] == 8
 
 
-def test_ctrl_c_finishes_the_step_then_checkpoints(data, tmp_path, request):
+def test_ctrl_c_finishes_the_step_then_checkpoints(data, tmp_path, request, monkeypatch):
+    from training import imitation
+
     _, norm, _, free = data
     # A runner started in the background (`cmd &` in a script) inherits SIGINT ignored; Ctrl-C
     # in a terminal is what this test is about, so start from Python's own handler.
@@ -73,18 +73,19 @@ def test_ctrl_c_finishes_the_step_then_checkpoints(data, tmp_path, request):
         "config": {}, "profile": "tiny", "normalisation": norm.to_dict(), "data_digest": "x",
         "iteration": 0, "code_version": "x", "episodes": [],
     }  # fmt: skip
+    steps = []
 
-    def loss_fn(model, batch, step):
-        if step == 2:
+    def loss_fn(model, batch):
+        steps.append(len(steps))
+        if steps[-1] == 2:
             signal.raise_signal(signal.SIGINT)  # arrives mid-step
         return imitation_loss(model, batch)
 
-    spec = StageSpec.of(tiny(imitation_steps=10, imitation_batch_size=4, ckpt_every=0), "imitation")
+    monkeypatch.setattr(imitation, "imitation_loss", loss_fn)  # the stage's own loop calls it
+    cfg = tiny(imitation_steps=10, imitation_batch_size=4, ckpt_every=0)
     ctx = RunContext(ckpt_dir=tmp_path, common=common)
-    fields = lambda: {"policy": policy.state_dict(), "world_model": None}  # noqa: E731
     with pytest.raises(Interrupted):
-        run_stage(spec, ctx, dataset=free, trainable=policy, forward=policy, loss_fn=loss_fn,
-                  checkpoint_fields=fields)  # fmt: skip
+        train_imitation(cfg, policy, free, ctx)
     saved = ck.load_checkpoint(tmp_path / "imitation.pt")
     assert saved["step"] == 3 and [h["step"] for h in saved["history"]] == [1, 2, 3]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler restored

@@ -26,7 +26,7 @@ from torch import nn
 
 from training.augment import augment_images, mirror_batch
 from training.held_out import held_out
-from training.trainer import RunContext, StageResult, StageSpec, run_stage
+from training.trainer import RunContext, StageLoop, StageResult, StageSpec
 
 if TYPE_CHECKING:
     from training.config import IterateConfig
@@ -54,6 +54,22 @@ def imitation_loss(policy: nn.Module, batch: dict) -> tuple[torch.Tensor, dict]:
     return loss, {"l1_steering": steer.detach(), "l1_throttle": throttle.detach()}
 
 
+def augmented(cfg: IterateConfig, batch: dict, step: int, rank: int) -> dict:
+    """The batch colour-jittered (`augment`) and mirrored (`mirror_imitation`), each drawn from
+    a generator seeded by (seed, step, rank): a resumed run draws what the unstopped one did."""
+    if cfg.augment:
+        gen = torch.Generator().manual_seed((cfg.seed * 1_000_003 + step) * 1009 + rank)
+        image = augment_images(batch["image"].cpu(), gen, hue=cfg.augment_hue,
+                               saturation=cfg.augment_saturation,
+                               brightness=cfg.augment_brightness,
+                               contrast=cfg.augment_contrast)  # fmt: skip
+        batch = {**batch, "image": image.to(batch["image"].device)}
+    if cfg.mirror_imitation:
+        gen = torch.Generator().manual_seed((cfg.seed * 1_000_003 + step) * 1013 + rank)
+        batch = mirror_batch(batch, gen)
+    return batch
+
+
 def train_imitation(
     cfg: IterateConfig,
     policy: nn.Module,
@@ -66,40 +82,26 @@ def train_imitation(
     """Train `policy` in place on an ImitationDataset (or a collision-free WindowDataset)."""
     ctx = ctx or RunContext()
     policy.to(ctx.dist.device)
-
-    def loss_fn(model: nn.Module, batch: dict, step: int):
-        if cfg.augment:
-            # Seeded by (seed, step, rank): a resumed run draws the same jitter.
-            gen = torch.Generator().manual_seed(
-                (cfg.seed * 1_000_003 + step) * 1009 + ctx.dist.rank
-            )
-            image = augment_images(batch["image"].cpu(), gen, hue=cfg.augment_hue,
-                                   saturation=cfg.augment_saturation,
-                                   brightness=cfg.augment_brightness,
-                                   contrast=cfg.augment_contrast)  # fmt: skip
-            batch = {**batch, "image": image.to(batch["image"].device)}
-        if cfg.mirror_imitation:
-            gen = torch.Generator().manual_seed(
-                (cfg.seed * 1_000_003 + step) * 1013 + ctx.dist.rank
-            )
-            batch = mirror_batch(batch, gen)
-        return imitation_loss(model, batch)
-
     val_fn = None
     if val_dataset is not None and len(val_dataset) > 0:
         val_fn = lambda: {"loss": held_out_l1(policy, val_dataset, ctx.dist.device)}  # noqa: E731
-
-    return run_stage(
-        StageSpec.of(cfg, "imitation"),
-        ctx,
-        dataset=dataset,
-        trainable=policy,
-        forward=policy,
-        loss_fn=loss_fn,
+    loop = StageLoop(
+        StageSpec.of(cfg, "imitation"), ctx, dataset=dataset, trainable=policy, forward=policy,
         checkpoint_fields=lambda: {"policy": policy.state_dict(), "world_model": None},
-        resume=resume,
-        val_fn=val_fn,
-    )
+        resume=resume, val_fn=val_fn,
+    )  # fmt: skip
+    optimizer = loop.optimizer
+    with loop.running() as steps:
+        for step, batch in steps:
+            loss, metrics = imitation_loss(loop.model, augmented(cfg, batch, step, ctx.dist.rank))
+            loop.check_finite(loss, step)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            clip = loop.clip_and_schedule(step)
+            optimizer.step()
+            loop.record(step, batch, loss, metrics, clip)
+            loop.checkpoint_or_stop(step)
+    return loop.result
 
 
 @torch.no_grad()

@@ -56,7 +56,7 @@ from training.data import take
 from training.held_out import held_out
 from training.imitation import imitation_loss
 from training.models import sample_actions
-from training.trainer import RunContext, StageResult, StageSpec, per_rank_batch, run_stage
+from training.trainer import RunContext, StageLoop, StageResult, StageSpec, per_rank_batch
 
 if TYPE_CHECKING:
     from training.config import IterateConfig
@@ -106,7 +106,8 @@ def step_generator(seed: int, step: int, rank: int, stream: int) -> torch.Genera
     return torch.Generator().manual_seed((seed * 1_000_003 + step) * stream + rank)
 
 
-def noise(shape, seed: int, step: int, rank: int, device) -> torch.Tensor:
+def action_noise(shape, seed: int, step: int, rank: int, device) -> torch.Tensor:
+    """ε of the sampled actions a = μ + σ·ε, drawn by (seed, step, rank)."""
     return torch.randn(shape, generator=step_generator(seed, step, rank, 1009)).to(device)
 
 
@@ -131,10 +132,10 @@ def throttle_only(grad: torch.Tensor) -> torch.Tensor:
     return torch.stack([torch.zeros_like(grad[..., 0]), grad[..., 1]], dim=-1)
 
 
-def gradient_step(cfg: IterateConfig, world_model, batch: dict, actions, weights: tuple):
-    """The paper's loss: the imagined objective of the sampled actions (its gradient centred
-    over the starts with `refine_center_gradient`, kept off the steering without
-    `refine_steering`)."""
+def imagined_objective(cfg: IterateConfig, world_model, batch: dict, actions, weights: tuple):
+    """The paper's loss: the objective the world model imagines for the sampled actions (its
+    gradient centred over the starts with `refine_center_gradient`, kept off the steering
+    without `refine_steering`)."""
     if cfg.refine_center_gradient and actions.requires_grad:
         actions.register_hook(centered)
     if not cfg.refine_steering and actions.requires_grad:
@@ -148,6 +149,33 @@ def gradient_step(cfg: IterateConfig, world_model, batch: dict, actions, weights
 
 def uncertainty_weight(cfg: IterateConfig) -> float:
     return 0.0 if cfg.no_uncertainty else cfg.refine_w_uncertainty
+
+
+def refine_loss(
+    cfg: IterateConfig, world_model, batch: dict, actions, mu, *, weights: tuple, step: int,
+    ctx: RunContext, step_loss=None, start=None, demonstrations=None, policy=None,
+):  # fmt: skip
+    """The loss of one refinement step: the imagined objective of the sampled actions (the
+    paper's, or a research variant's `step_loss`), plus the safeguards' terms: the anchor to
+    `start` (the policy refinement began from) and imitation's L1 on a batch of
+    `demonstrations`, through `policy` itself."""
+    if step_loss is not None:
+        loss, metrics = step_loss(cfg, world_model, batch, actions, mu, weights)
+    else:
+        loss, metrics = imagined_objective(cfg, world_model, batch, actions, weights)
+    if start is not None:
+        with torch.no_grad():
+            mu_start = start(batch["image"], batch["speed"])[0]
+        anchor = anchor_penalty(mu, mu_start)
+        loss = loss + cfg.refine_w_anchor * anchor
+        metrics["anchor"] = anchor.detach()
+    if demonstrations is not None:
+        # the policy itself, not the loop's model: under torchrun that is DDP's wrapper; the
+        # gradient reaches the same parameters and DDP reduces their summed gradient
+        bc, _ = imitation_loss(policy, demonstration_batch(demonstrations, cfg, step, ctx))
+        loss = loss + cfg.refine_w_imitation * bc
+        metrics["imitation_l1"] = bc.detach()
+    return loss, metrics
 
 
 def train_refine(
@@ -186,68 +214,51 @@ def train_refine(
     demos = demonstrations if cfg.refine_w_imitation and demonstrations is not None else None
     if demos is not None and len(demos) == 0:
         demos = None  # nothing a person drove in this data: the term has nothing to hold on to
-
-    def loss_fn(model: nn.Module, batch: dict, step: int):
-        eps = noise((len(batch["speed"]), horizon, 2), cfg.seed, step, ctx.dist.rank, device)
-        actions, mu = model(batch["image"], batch["speed"], eps)
-        if step_loss is not None:
-            loss, metrics = step_loss(cfg, world_model, batch, actions, mu, weights)
-        else:
-            loss, metrics = gradient_step(cfg, world_model, batch, actions, weights)
-        if start is not None:
-            with torch.no_grad():
-                mu_start = start(batch["image"], batch["speed"])[0]
-            anchor = anchor_penalty(mu, mu_start)
-            loss = loss + cfg.refine_w_anchor * anchor
-            metrics["anchor"] = anchor.detach()
-        if demos is not None:
-            # the policy itself, not model.policy: under torchrun `model` is DDP's wrapper; the
-            # gradient reaches the same parameters and DDP reduces their summed gradient
-            bc, _ = imitation_loss(policy, demonstration_batch(demos, cfg, step, ctx))
-            loss = loss + cfg.refine_w_imitation * bc
-            metrics["imitation_l1"] = bc.detach()
-        return loss, metrics
-
     val_fn = None
     if val_dataset is not None and len(val_dataset) > 0:
 
         def val_fn() -> dict:
             return held_out_objective(cfg, policy, world_model, val_dataset, device)
 
-    return run_stage(
-        StageSpec.of(cfg, "refine"),
-        ctx,
-        dataset=dataset,
-        trainable=policy,
-        forward=sampler,
-        loss_fn=loss_fn,
+    loop = StageLoop(
+        StageSpec.of(cfg, "refine"), ctx, dataset=dataset, trainable=policy, forward=sampler,
         checkpoint_fields=lambda: {
-            "policy": policy.state_dict(),
-            "world_model": world_model.state_dict(),
+            "policy": policy.state_dict(), "world_model": world_model.state_dict()
         },
-        resume=resume,
-        val_fn=val_fn,
-        after_step=candidate_keeper(cfg, policy, ctx),
-    )
+        resume=resume, val_fn=val_fn,
+    )  # fmt: skip
+    optimizer = loop.optimizer
+    with loop.running() as steps:
+        for step, batch in steps:
+            eps = action_noise((len(batch["speed"]), horizon, 2), cfg.seed, step, ctx.dist.rank,
+                               device)  # fmt: skip
+            actions, mu = loop.model(batch["image"], batch["speed"], eps)
+            loss, metrics = refine_loss(
+                cfg, world_model, batch, actions, mu, weights=weights, step=step, ctx=ctx,
+                step_loss=step_loss, start=start, demonstrations=demos, policy=policy,
+            )  # fmt: skip
+            loop.check_finite(loss, step)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            clip = loop.clip_and_schedule(step)
+            optimizer.step()
+            loop.record(step, batch, loss, metrics, clip)
+            keep_candidate(cfg, policy, ctx, step + 1)
+            loop.checkpoint_or_stop(step)
+    return loop.result
 
 
-def candidate_keeper(cfg: IterateConfig, policy: nn.Module, ctx: RunContext):
-    """after_step for run_stage: every `refine_candidates_every` steps, the policy as it is then,
-    as a checkpoint export and `--init` read (OUT/candidates/refine<step>.pt). Why: the imagined
-    objective is not the track, so how many steps of it help can be decided by driving the
-    candidates (research/variants/select_by_driving.py)."""
+def keep_candidate(cfg: IterateConfig, policy: nn.Module, ctx: RunContext, done: int) -> None:
+    """Every `refine_candidates_every` steps (on rank 0, in a run that keeps files), the policy
+    as it is then, as a checkpoint export and `--init` read (OUT/candidates/refine<step>.pt).
+    Why: the imagined objective is not the track, so how many steps of it help can be decided
+    by driving the candidates (research/variants/select_by_driving.py)."""
     every = cfg.refine_candidates_every
-    if not every or ctx.ckpt_dir is None or not ctx.dist.is_main:
-        return None
-    folder = ctx.ckpt_dir.parent / "candidates"
-
-    def keep(done: int) -> None:
-        if done % every == 0:
-            fields = {"stage": "refine", "step": done, "optimizer": None, "world_model": None}
-            weights = {"policy": policy.state_dict()}
-            save_checkpoint(folder / f"refine{done}.pt", **{**ctx.common, **fields, **weights})
-
-    return keep
+    if not every or ctx.ckpt_dir is None or not ctx.dist.is_main or done % every:
+        return
+    fields = {"stage": "refine", "step": done, "optimizer": None, "world_model": None}
+    path = ctx.ckpt_dir.parent / "candidates" / f"refine{done}.pt"
+    save_checkpoint(path, **{**ctx.common, **fields, "policy": policy.state_dict()})
 
 
 @torch.no_grad()

@@ -1,11 +1,14 @@
-"""The one optimisation loop the three stages share: data order, DDP, clipping, checkpoints.
+"""What the three stages' loops share around their optimizer step: data order, DDP, clipping,
+the learning-rate schedule, logging, checkpoints, the budget and the signals that stop a run.
 
 Every stage is "sample a batch, compute a loss, step Adam with the gradient clipped by global
-norm, checkpoint every N steps". Keeping that loop in one place is what makes resume exact in
-all three: the batch order is a pure function of (seed, stage, step) — an epoch's permutation
-comes from DistributedSampler(seed).set_epoch(epoch) and a resumed run skips the batches it
-already took without loading them — so a run killed at step k and restarted takes the same
-batches as one that never stopped.
+norm, checkpoint every N steps". Each stage writes that loop itself, its loss beside its
+`optimizer.step()` (training/imitation.py, world_model_stage.py, refine.py); `StageLoop` here
+holds the rest, one copy for all three, which is what makes resume exact in all of them: the
+batch order is a pure function of (seed, stage, step) — an epoch's permutation comes from
+DistributedSampler(seed).set_epoch(epoch) and a resumed run skips the batches it already took
+without loading them — so a run killed at step k and restarted takes the same batches as one
+that never stopped.
 
 Under torchrun the trained module is wrapped in DistributedDataParallel; each process takes
 batch_size / world_size windows of a global batch (the paper's batch sizes stay global), and
@@ -21,6 +24,7 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,8 +38,6 @@ from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
 from training.checkpoint import save_checkpoint
-
-LossFn = Callable[[nn.Module, dict, int], tuple[torch.Tensor, dict[str, torch.Tensor]]]
 
 
 class StopRequested(Exception):
@@ -296,99 +298,139 @@ def _mean_across(values: dict[str, float], dist: Dist) -> dict[str, float]:
     return dict(zip(keys, (t / dist.world_size).tolist(), strict=True))
 
 
-def run_stage(
-    spec: StageSpec,
-    ctx: RunContext,
-    *,
-    dataset: Dataset,
-    trainable: nn.Module,
-    forward: nn.Module,
-    loss_fn: LossFn,
-    checkpoint_fields: Callable[[], dict],
-    resume: dict | None = None,
-    val_fn: Callable[[], dict[str, float]] | None = None,
-    after_step: Callable[[int], None] | None = None,
-) -> StageResult:
-    """Train `trainable` for spec.steps steps, through `forward` (the module DDP wraps).
+class StageLoop:
+    """What a stage's own loop shares with the others around its optimizer step: the optimizer
+    and the resume, the batches, DDP, the clipping and learning-rate schedule, the logged
+    scalars, the checkpoints and the budget and signals that stop a run. Each stage writes its
+    loop with its loss beside the step (imitation.py, world_model_stage.py, refine.py):
 
-    checkpoint_fields() returns the stage's model state dicts for a checkpoint; resume is a
-    checkpoint of this stage whose model weights the caller has already loaded; after_step(n)
-    runs on every rank once n steps are done (refinement keeps candidates with it).
-    """
-    params = [p for p in trainable.parameters() if p.requires_grad]
-    optimizer = torch.optim.Adam(params, lr=spec.lr)
-    start, history = 0, []
-    if resume is not None and resume.get("stage") == spec.name:
-        start = int(resume["step"])
-        history = list(resume.get("history", []))
-        if resume.get("optimizer") is not None:
-            optimizer.load_state_dict(resume["optimizer"])
-    result = StageResult(spec.name, start, history)
-    if start >= spec.steps:
-        return result
-    if len(dataset) == 0:
-        raise ValueError(f"{spec.name}: no training windows")
-
-    def save(step: int) -> None:
-        fields = {**checkpoint_fields(), "optimizer": optimizer.state_dict(), "history": history}
-        ctx.save(spec.name, step, **fields)
-
-    model = wrap(forward, ctx.dist)
-    model.train(spec.train_mode)
-    data = batches(dataset, spec, ctx.dist, start, ctx.num_workers)
-    show = ctx.progress and ctx.dist.is_main
-    bar = tqdm(total=spec.steps, initial=start, desc=spec.name, disable=not show, mininterval=0.5)
-    t0 = time.perf_counter()
-    if ctx.pace is not None:
-        ctx.pace.begin(ctx.profile, spec.name, spec.batch_size, start, spec.steps)
-    try:
-        with _Signals() as signals:
-            for step in range(result.steps, spec.steps):
-                batch = to_device(next(data), ctx.dist.device)
-                loss, metrics = loss_fn(model, batch, step)
-                if not torch.isfinite(loss):
-                    raise FloatingPointError(f"{spec.name}: loss is {loss.item()} at step {step}")
-                optimizer.zero_grad(set_to_none=True)
+        loop = StageLoop(spec, ctx, dataset=…, trainable=…, forward=…, checkpoint_fields=…)
+        with loop.running() as steps:
+            for step, batch in steps:
+                loss, metrics = <stage>_loss(loop.model, batch)
+                loop.check_finite(loss, step)
+                loop.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
-                grad_norm = nn.utils.clip_grad_norm_(params, spec.grad_clip)
-                lr = spec.lr_at(step)
-                for group in optimizer.param_groups:
-                    group["lr"] = lr
-                optimizer.step()
-                done = result.steps = step + 1
-                result.samples += len(batch["speed"]) * ctx.dist.world_size
-                evaluate = val_fn is not None and spec.eval_every and done % spec.eval_every == 0
-                if evaluate or done % spec.log_every == 0 or done == spec.steps:
-                    scalars = {"loss": loss.item(), "grad_norm": float(grad_norm), "lr": lr}
-                    scalars.update({k: float(v) for k, v in metrics.items()})
-                    scalars = _mean_across(scalars, ctx.dist)  # same steps on every rank
-                    if evaluate and ctx.dist.is_main:
-                        scalars.update({f"val_{k}": v for k, v in val_fn().items()})
-                    history.append({"step": done, **scalars})
-                    if ctx.writer is not None:
-                        for k, v in scalars.items():
-                            ctx.writer.add_scalar(f"{spec.name}/{k}", v, done)
-                    bar.set_postfix(loss=f"{scalars['loss']:.4g}", refresh=False)
-                bar.update(1)
-                if ctx.pace is not None:
-                    ctx.pace.step()
-                if after_step is not None:
-                    after_step(done)
-                stop = ctx.budget.spend()
-                interrupted = signals.requested(ctx.dist)
-                periodic = spec.ckpt_every and done % spec.ckpt_every == 0
-                if stop or interrupted or periodic or done == spec.steps:
-                    save(done)
-                if interrupted:
-                    raise Interrupted(f"{spec.name} step {done}")
-                if stop:
-                    raise StopRequested(f"{spec.name} step {done}")
-    finally:
-        bar.close()
-        result.seconds = time.perf_counter() - t0
-    if ctx.pace is not None:
-        ctx.pace.end()
-    return result
+                clip = loop.clip_and_schedule(step)
+                loop.optimizer.step()
+                loop.record(step, batch, loss, metrics, clip)
+                loop.checkpoint_or_stop(step)
+        return loop.result
+
+    `trainable` is what the optimizer steps and `forward` the module DDP wraps (`loop.model`);
+    checkpoint_fields() returns the stage's model state dicts for a checkpoint; resume is a
+    checkpoint of this stage whose model weights the caller has already loaded.
+    """
+
+    def __init__(
+        self,
+        spec: StageSpec,
+        ctx: RunContext,
+        *,
+        dataset: Dataset,
+        trainable: nn.Module,
+        forward: nn.Module,
+        checkpoint_fields: Callable[[], dict],
+        resume: dict | None = None,
+        val_fn: Callable[[], dict[str, float]] | None = None,
+    ) -> None:
+        self.spec, self.ctx, self.dataset = spec, ctx, dataset
+        self.checkpoint_fields, self.val_fn = checkpoint_fields, val_fn
+        self.params = [p for p in trainable.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.Adam(self.params, lr=spec.lr)
+        start, history = 0, []
+        if resume is not None and resume.get("stage") == spec.name:
+            start = int(resume["step"])
+            history = list(resume.get("history", []))
+            if resume.get("optimizer") is not None:
+                self.optimizer.load_state_dict(resume["optimizer"])
+        self.result = StageResult(spec.name, start, history)
+        self.model = forward  # DDP's wrapper once running
+
+    @contextmanager
+    def running(self) -> Iterator[Iterator[tuple[int, dict]]]:
+        """(step, batch on the device) for each step still to take; on leaving, the progress
+        bar closed, the signal handlers restored and the stage's wall time kept."""
+        spec, ctx, result = self.spec, self.ctx, self.result
+        if result.steps >= spec.steps:
+            yield iter(())
+            return
+        if len(self.dataset) == 0:
+            raise ValueError(f"{spec.name}: no training windows")
+        self.model = wrap(self.model, ctx.dist)
+        self.model.train(spec.train_mode)
+        data = batches(self.dataset, spec, ctx.dist, result.steps, ctx.num_workers)
+        show = ctx.progress and ctx.dist.is_main
+        self._bar = tqdm(total=spec.steps, initial=result.steps, desc=spec.name,
+                         disable=not show, mininterval=0.5)  # fmt: skip
+        t0 = time.perf_counter()
+        if ctx.pace is not None:
+            ctx.pace.begin(ctx.profile, spec.name, spec.batch_size, result.steps, spec.steps)
+        steps = ((step, to_device(next(data), ctx.dist.device))
+                 for step in range(result.steps, spec.steps))  # fmt: skip
+        try:
+            with _Signals() as self._signals:
+                yield steps
+        finally:
+            self._bar.close()
+            result.seconds = time.perf_counter() - t0
+        if ctx.pace is not None:
+            ctx.pace.end()
+
+    def check_finite(self, loss: torch.Tensor, step: int) -> None:
+        """A diverged loss stops the run before it reaches the weights (the last checkpoint
+        stays intact)."""
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"{self.spec.name}: loss is {loss.item()} at step {step}")
+
+    def clip_and_schedule(self, step: int) -> tuple[torch.Tensor, float]:
+        """After backward(), before the step: the gradient clipped by its global norm and the
+        learning rate of this step set. (gradient norm before clipping, learning rate)"""
+        grad_norm = nn.utils.clip_grad_norm_(self.params, self.spec.grad_clip)
+        lr = self.spec.lr_at(step)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        return grad_norm, lr
+
+    def record(self, step: int, batch: dict, loss, metrics: dict, clip: tuple) -> None:
+        """After the step: counted, its scalars logged every log_every steps (the mean over the
+        processes; with the held-out ones every eval_every), the progress advanced."""
+        spec, ctx, result = self.spec, self.ctx, self.result
+        done = result.steps = step + 1
+        result.samples += len(batch["speed"]) * ctx.dist.world_size
+        evaluate = self.val_fn is not None and spec.eval_every and done % spec.eval_every == 0
+        if evaluate or done % spec.log_every == 0 or done == spec.steps:
+            grad_norm, lr = clip
+            scalars = {"loss": loss.item(), "grad_norm": float(grad_norm), "lr": lr}
+            scalars.update({k: float(v) for k, v in metrics.items()})
+            scalars = _mean_across(scalars, ctx.dist)  # same steps on every rank
+            if evaluate and ctx.dist.is_main:
+                scalars.update({f"val_{k}": v for k, v in self.val_fn().items()})
+            result.history.append({"step": done, **scalars})
+            if ctx.writer is not None:
+                for k, v in scalars.items():
+                    ctx.writer.add_scalar(f"{spec.name}/{k}", v, done)
+            self._bar.set_postfix(loss=f"{scalars['loss']:.4g}", refresh=False)
+        self._bar.update(1)
+        if ctx.pace is not None:
+            ctx.pace.step()
+
+    def checkpoint_or_stop(self, step: int) -> None:
+        """A checkpoint every ckpt_every steps and at the last; when the budget is spent or a
+        signal came (on any rank), the checkpoint, then StopRequested or Interrupted."""
+        spec, ctx = self.spec, self.ctx
+        done = step + 1
+        stop = ctx.budget.spend()
+        interrupted = self._signals.requested(ctx.dist)
+        periodic = spec.ckpt_every and done % spec.ckpt_every == 0
+        if stop or interrupted or periodic or done == spec.steps:
+            fields = {**self.checkpoint_fields(), "optimizer": self.optimizer.state_dict(),
+                      "history": self.result.history}  # fmt: skip
+            ctx.save(spec.name, done, **fields)
+        if interrupted:
+            raise Interrupted(f"{spec.name} step {done}")
+        if stop:
+            raise StopRequested(f"{spec.name} step {done}")
 
 
 def param_digest(module: nn.Module) -> dict[str, torch.Tensor]:

@@ -21,7 +21,7 @@ from torch import nn
 from training.augment import mirror_batch
 from training.held_out import held_out
 from training.losses import evidential_classification_loss, evidential_regression_loss
-from training.trainer import RunContext, StageResult, StageSpec, run_stage
+from training.trainer import RunContext, StageLoop, StageResult, StageSpec
 
 if TYPE_CHECKING:
     from training.config import IterateConfig
@@ -121,14 +121,6 @@ def train_world_model(
         "evidential_lambda": cfg.evidential_lambda,
     }
 
-    def loss_fn(model: nn.Module, batch: dict, step: int):
-        if cfg.mirror_world_model:  # seeded by (seed, step, rank): a resumed run draws the same
-            gen = torch.Generator().manual_seed(
-                (cfg.seed * 1_000_003 + step) * 1013 + ctx.dist.rank
-            )
-            batch = mirror_batch(batch, gen)
-        return world_model_loss(model, batch, targets, **weights)
-
     val_fn = None
     if val_dataset is not None and len(val_dataset) > 0:
         val_fn = lambda: held_out_loss(world_model, val_dataset, targets, weights, device)  # noqa: E731
@@ -139,17 +131,32 @@ def train_world_model(
             "world_model": world_model.state_dict(),
         }
 
-    return run_stage(
-        StageSpec.of(cfg, "world_model"),
-        ctx,
-        dataset=dataset,
-        trainable=world_model,
-        forward=world_model,
-        loss_fn=loss_fn,
-        checkpoint_fields=fields,
-        resume=resume,
-        val_fn=val_fn,
-    )
+    loop = StageLoop(
+        StageSpec.of(cfg, "world_model"), ctx, dataset=dataset, trainable=world_model,
+        forward=world_model, checkpoint_fields=fields, resume=resume, val_fn=val_fn,
+    )  # fmt: skip
+    optimizer = loop.optimizer
+    with loop.running() as steps:
+        for step, batch in steps:
+            loss, metrics = world_model_loss(loop.model, mirrored(cfg, batch, step, ctx.dist.rank),
+                                             targets, **weights)  # fmt: skip
+            loop.check_finite(loss, step)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            clip = loop.clip_and_schedule(step)
+            optimizer.step()
+            loop.record(step, batch, loss, metrics, clip)
+            loop.checkpoint_or_stop(step)
+    return loop.result
+
+
+def mirrored(cfg: IterateConfig, batch: dict, step: int, rank: int) -> dict:
+    """The batch mirrored (`mirror_world_model`), drawn from a generator seeded by (seed, step,
+    rank): a resumed run draws what the unstopped one did."""
+    if not cfg.mirror_world_model:
+        return batch
+    gen = torch.Generator().manual_seed((cfg.seed * 1_000_003 + step) * 1013 + rank)
+    return mirror_batch(batch, gen)
 
 
 @torch.no_grad()

@@ -37,8 +37,8 @@ from torch import nn
 from carrt.interfaces import Mode
 from training.data import WindowDataset
 from training.imitation import imitation_loss
-from training.refine import candidate_keeper, demonstration_batch
-from training.trainer import RunContext, StageResult, StageSpec, run_stage
+from training.refine import demonstration_batch, keep_candidate
+from training.trainer import RunContext, StageLoop, StageResult, StageSpec
 
 if TYPE_CHECKING:
     from research.variants.config import ResearchConfig
@@ -210,27 +210,30 @@ def train_refine_outcomes(
     if demos is not None and len(demos) == 0:
         demos = None
 
-    def loss_fn(model: nn.Module, batch: dict, step: int):
-        loss, metrics = imitation_loss(model, batch)
-        metrics = {"outcome_l1": loss.detach(), **metrics}
-        if demos is not None:
-            # the policy itself: one forward through DDP's wrapper per step (as refine.py)
-            bc, _ = imitation_loss(policy, demonstration_batch(demos, cfg, step, ctx))
-            loss = loss + cfg.refine_w_imitation * bc
-            metrics["imitation_l1"] = bc.detach()
-        return loss, metrics
-
-    return run_stage(
-        StageSpec.of(cfg, "refine"),
-        ctx,
-        dataset=dataset,
-        trainable=policy,
-        forward=policy,
-        loss_fn=loss_fn,
+    loop = StageLoop(
+        StageSpec.of(cfg, "refine"), ctx, dataset=dataset, trainable=policy, forward=policy,
         checkpoint_fields=lambda: {"policy": policy.state_dict(), "world_model": None},
         resume=resume,
-        after_step=candidate_keeper(cfg, policy, ctx),
-    )
+    )  # fmt: skip
+    optimizer = loop.optimizer
+    with loop.running() as steps:
+        for step, batch in steps:
+            loss, metrics = imitation_loss(loop.model, batch)
+            metrics = {"outcome_l1": loss.detach(), **metrics}
+            if demos is not None:
+                # the policy itself: one forward through DDP's wrapper per step (as refine.py)
+                bc, _ = imitation_loss(policy, demonstration_batch(demos, cfg, step, ctx))
+                loss = loss + cfg.refine_w_imitation * bc
+                metrics["imitation_l1"] = bc.detach()
+            loop.check_finite(loss, step)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            clip = loop.clip_and_schedule(step)
+            optimizer.step()
+            loop.record(step, batch, loss, metrics, clip)
+            keep_candidate(cfg, policy, ctx, step + 1)
+            loop.checkpoint_or_stop(step)
+    return loop.result
 
 
 def refine_by_outcomes(cfg: ResearchConfig, policy, data, ctx: RunContext, resume, demonstrations):
