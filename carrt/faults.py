@@ -158,7 +158,7 @@ class PartsWatch:
         return text
 
     def faults_of(self, tick: Any) -> None:
-        """This tick's faults (a loop.Tick after arbitration), each said when it starts/ends."""
+        """This tick's faults (a Tick, carrt/tick.py, arbitrated), each said when it starts/ends."""
         parts, frame, link = self.parts, tick.frame, self.parts.link
         if getattr(link, "config_pending", False):
             if self._config_pending_since is None:  # (a clock may start at 0.0)

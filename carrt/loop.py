@@ -24,8 +24,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from carrt.arbitration import Arbiter, ArbiterInputs, Decision
 from carrt.camera import preprocess
 from carrt.config import CarConfig
@@ -41,42 +39,16 @@ from carrt.interfaces import (
     LiveStatus,
     Mode,
     Policy,
-    Step,
 )
 from carrt.laps import LapCounter
 from carrt.loop_summary import SECTIONS, LoopSummary, percentiles
 from carrt.noise import NoiseInjector
 from carrt.plan import PlanBuffer
 from carrt.speed import SpeedEstimator
+from carrt.tick import Tick
 from firmware_bridge import messages as m
 
-NAN2 = (math.nan, math.nan)
-
-
 LOG = logging.getLogger(__name__)  # mode changes and refusals: what the person is told
-
-
-@dataclass
-class Tick:
-    """One tick's values, handed from stage to stage (sense → infer → arbitrate → actuate →
-    record); each stage fills in its part."""
-
-    start: float  # when the tick started on the loop's clock (on a frame's arrival)
-    now: float = math.nan  # when the arbiter decided
-    frame: Any = None  # CameraFrame | None
-    joystick: Any = None  # JoystickState
-    telemetry: Any = None  # TelemetrySample | None
-    collided: bool = False
-    image: np.ndarray | None = None  # the preprocessed 96×96 frame
-    speed: float = 0.0
-    plan: Any = None  # Plan | None: a fresh plan this tick
-    plan_action: tuple[float, float] | None = None
-    fallback_action: tuple[float, float] | None = None
-    decision: Decision | None = None
-    rebooted: str = ""  # the board rebooted since the last tick: the line naming it
-    executed: tuple[float, float] = (0.0, 0.0)
-    noisy: bool = False
-    sent_at: float = math.nan
 
 
 class SectionTimer:
@@ -296,24 +268,18 @@ class ControlLoop:
         """Timings into the summary, and the tick's LiveStatus for whoever watches."""
         for name, seconds in sections.times.items():
             self._timings[name].append(seconds)
-        decision, link = tick.decision, self.parts.link
-        self.live = LiveStatus(
-            mode=decision.mode,
-            why=self.arbiter.estop_reason if decision.mode == Mode.ESTOP else decision.reason,
-            speed_mps=tick.speed,
-            human=(tick.joystick.steering, tick.joystick.throttle),
-            executed=tick.executed,
+        decision = tick.decision
+        self.live = tick.live_status(
+            count=self.live.tick + 1,
+            estop_reason=self.arbiter.estop_reason,
+            plan=self.plans.plan,
+            sections_s=sections.times,
+            link=self.parts.link,
             recording=self.episodes.recording,
-            episodes=self.summary.episodes,
-            collisions=self.summary.collisions,
-            laps=self.summary.laps,
-            tick=self.live.tick + 1, deadline=tick.start, frame=tick.frame, image=tick.image,
-            policy=tick.plan_action if tick.plan_action is not None else tick.fallback_action,
-            plan=self.plans.plan, sections_s=sections.times, telemetry_age_s=link.telemetry_age_s(),
-            board_state=getattr(link.board_state, "name", str(link.board_state)),
-            link_counters=dict(vars(link.counters)),  # a few ints: a copy costs ~1 µs
-            alert=self._alert(), notices=self.watch.notices,
-        )  # fmt: skip
+            summary=self.summary,
+            alert=self._alert(),
+            notices=self.watch.notices,
+        )
         mode_name = decision.mode.name
         self.summary.modes_s[mode_name] = self.summary.modes_s.get(mode_name, 0.0) + self.period
 
@@ -360,7 +326,8 @@ class ControlLoop:
         if not rule.recording:
             return
         if tick.image is not None:
-            if sink.write(self._step(tick)):
+            self._step_index += 1
+            if sink.write(tick.step(self._step_index - 1, time.time())):
                 self.summary.recorded_steps += 1
             else:
                 self.summary.dropped_steps += 1
@@ -385,31 +352,6 @@ class ControlLoop:
         self.summary.write_error = error
         LOG.error(f"RECORDING FAILED: {error}; stopping the car and the session")
         self.stop_event.set()
-
-    def _step(self, tick: Tick) -> Step:
-        decision, joystick, telemetry, plan = (tick.decision, tick.joystick, tick.telemetry,
-                                               tick.plan)  # fmt: skip
-        self._step_index += 1
-        return Step(
-            index=self._step_index - 1,
-            image=tick.image,
-            frame_captured_at=tick.frame.captured_at,
-            command_sent_at=tick.sent_at,
-            wall_time=time.time(),
-            speed_mps=tick.speed,
-            encoder_ticks=telemetry.telemetry.encoder_ticks if telemetry else 0,
-            human_action=(joystick.steering, joystick.throttle),
-            policy_action=tick.plan_action if tick.plan_action is not None else NAN2,
-            executed_action=tick.executed,
-            mode=decision.mode,
-            override=decision.override,
-            estop=decision.mode == Mode.ESTOP,
-            noise=tick.noisy,
-            collision=tick.collided,
-            lap=joystick.events.lap,
-            plan_mu=None if plan is None else plan.mu,
-            plan_sigma=None if plan is None else plan.sigma,
-        )
 
     def _end_reason(self, mode: Mode) -> str:
         if self._reboot_ended:
