@@ -32,7 +32,7 @@ COMMANDS = (
     ("carrt.check", "add_parser"),
     ("carrt.config_cmd", "add_parser"),
     ("carrt.calibrate", "add_parser"),
-    ("carrt.session", "add_parsers"),
+    ("carrt.session_cmd", "add_parsers"),
     ("carrt.episodes.cli", "add_parser"),
     ("carrt.report", "add_parser"),
     ("carrt.model_info", "add_parser"),
@@ -96,8 +96,8 @@ def _describe(parser: argparse.ArgumentParser, path: list[str]) -> None:
 
 
 class _ConsoleHandler(logging.Handler):
-    """Info to the stdout of the moment (tests and `carrt eval` redirect it), warnings and
-    errors to stderr with their level in front."""
+    """Info to the stdout of the moment (tests capture it), warnings and errors to stderr
+    with their level in front."""
 
     def emit(self, record: logging.LogRecord) -> None:
         text = record.getMessage()

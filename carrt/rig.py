@@ -34,7 +34,9 @@ class Rig:
     collisions: Callable[[], bool] | None = None  # the simulator reports crashes
     follows_mode: list = field(default_factory=list)  # things that need the loop's mode
     watches_loop: list = field(default_factory=list)  # shown the loop's LiveStatus (a window)
-    finish: Callable[[Any], None] | None = None  # with the loop summary (the sim's metrics)
+    # at the end, with the loop summary and the report's stream (None: say nothing); returns
+    # the rig's own results (the simulator's metrics), which run_session hands back
+    finish: Callable[[Any, Any], Any] | None = None
     # the simulator's own clock, faster than real time: the loop may wait for the disk there
     simulated_time: bool = False
 
@@ -45,7 +47,7 @@ class RigKind:
 
     name: str
     summary: str  # for --help and the start-up line
-    factory: str  # "module:function"(stack, args, config, *, driving, kind) -> Rig
+    factory: str  # "module:function"(stack, drive, config, *, driving, kind) -> Rig
     board: str | None = None  # simulator rigs: "module:Class" of the board behind the pty
     simulator: bool = False  # the simulator's flags (--layout, --realtime, ...) apply
     always_realtime: bool = False  # the board runs in wall-clock time only (an emulator)
@@ -58,10 +60,11 @@ def load(reference: str) -> Any:
 
 
 def open_car_rig(
-    stack: contextlib.ExitStack, args: Any, config: Any, *, driving: bool, kind: Any
+    stack: contextlib.ExitStack, drive: Any, config: Any, *, driving: bool, kind: Any
 ) -> Rig:
     """The real car: OpenCV camera, serial board, pygame pad; each checked before the next.
-    (A factory of carrt/rigs.py: the command line already went into `config`.)"""
+    (A factory of carrt/rigs.py: what `drive` says of the car, its port and camera, is already
+    in the car config `config`.)"""
     from carrt.camera import OpenCVCamera
     from carrt.joystick import PygameJoystick
 

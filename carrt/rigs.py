@@ -3,7 +3,8 @@
 As LeRobot registers its robots by name, each row names a rig and the function that opens it
 ("module:function", imported only when that rig is chosen, so a real car never loads the
 simulator, and the simulator never loads OpenCV's camera). Every factory takes the same
-arguments and returns a `carrt.rig.Rig`; the session does not know which one it got. A
+arguments (the drive's `carrt.session.DriveConfig`, the car config) and returns a
+`carrt.rig.Rig`; the session does not know which one it got. A
 simulated board (a class with `Board(plant).start()`, `.port`, `.stop()` and a `LABEL`, that
 speaks the protocol on a pty: firmware_bridge/virtual.py, firmware_bridge/avr_board.py) plugs
 into the simulator's factory through the row's `board`. So a new board is one file (its class)
@@ -15,7 +16,6 @@ On the command line: `--rig NAME`; `--sim` is short for `--rig sim`, `--sim --bo
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 from typing import Any
 
@@ -60,11 +60,8 @@ def lookup(name: str) -> RigKind:
     return kind
 
 
-def chosen(args: argparse.Namespace) -> RigKind:
+def chosen(rig: str | None, *, sim: bool = False, board: str | None = None) -> RigKind:
     """The rig the command line asks for: --rig, or --sim [--board], or the real car."""
-    rig = getattr(args, "rig", None)
-    board = getattr(args, "board", None)
-    sim = getattr(args, "sim", False)
     if rig is not None:
         if sim or board is not None:
             raise UserError("--rig replaces --sim and --board: give one or the other")
@@ -74,9 +71,8 @@ def chosen(args: argparse.Namespace) -> RigKind:
     return lookup("sim" if sim else "car")
 
 
-def open_rig(
-    stack: contextlib.ExitStack, args: argparse.Namespace, config: Any, *, driving: bool
-) -> Any:
-    """Open the chosen rig (its parts closed by `stack`) and return its `Rig`."""
-    kind = chosen(args)
-    return load(kind.factory)(stack, args, config, driving=driving, kind=kind)
+def open_rig(stack: contextlib.ExitStack, drive: Any, config: Any, *, driving: bool) -> Any:
+    """Open the rig `drive` (a DriveConfig) names, its parts closed by `stack`, with the car
+    config `config`; return its `Rig`."""
+    kind = lookup(drive.rig)
+    return load(kind.factory)(stack, drive, config, driving=driving, kind=kind)

@@ -1,4 +1,7 @@
-"""`carrt teleop` and `carrt drive`: assemble the parts, run the loop, always leave the car stopped.
+"""A drive as a function of its config: `run_session(DriveConfig(...))` assembles the parts, runs
+the loop, always leaves the car stopped, and returns what the run did. `carrt teleop` and
+`carrt drive` (their flags: carrt/session_cmd.py), `carrt eval`, `carrt-sim-data` and the
+training loop's drives all call it.
 
 Start-up order is chosen so that everything that can be wrong is found before the car can
 move: config, then the model (validated and warmed up), then the camera (first frame), then
@@ -10,7 +13,6 @@ then the board's 200 ms watchdog stops the car on its own.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import logging
@@ -18,145 +20,82 @@ import secrets
 import signal
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TextIO
 
-from carrt import __version__, layouts, rigs
+from carrt import __version__, rigs
 from carrt import config as car_config
-from carrt.arg_types import finite_non_negative
 from carrt.disk_space import check_room
 from carrt.errors import UserError
 from carrt.progress import recording_bar
+from firmware_bridge.avr_emulator import AvrEmulatorError
 from firmware_bridge.link import BoardLink, LinkError
+from firmware_bridge.native import FirmwareBuildError
+
+if TYPE_CHECKING:
+    from carrt.loop_summary import LoopSummary
 
 LOG = logging.getLogger(__name__)
 
-
-def add_parsers(subparsers: argparse._SubParsersAction) -> None:
-    teleop = subparsers.add_parser(
-        "teleop", help="drive with the joystick; with --record, record expert episodes"
-    )
-    _common_arguments(teleop)
-    teleop.add_argument(
-        "--expert",
-        choices=("auto",),
-        help="with --sim: the scripted expert drives instead of a person",
-    )
-    _expert_noise_argument(teleop, "with --expert")
-    teleop.set_defaults(func=run_teleop)
-    drive = subparsers.add_parser(
-        "drive", help="let a policy drive; the joystick overrides and e-stops"
-    )
-    drive.add_argument(
-        "--model",  # required, checked in run_drive: one line, not argparse's usage block
-        help="the policy to drive (required): .onnx exported by `carrt-export`, or `demo` for "
-        "the shipped policy",
-    )
-    drive.add_argument(
-        "--autopilot",
-        action="store_true",
-        help="with --sim: arm, engage AUTO, and reset the car after every collision",
-    )
-    drive.add_argument(
-        "--expert-intervene",
-        action="store_true",
-        help="with --sim --autopilot: the scripted expert plays the person who takes over "
-        "when a collision is near (recorded as interventions: override + the expert's a*)",
-    )
-    _expert_noise_argument(drive, "with --expert-intervene: on the expert's take-overs")
-    _common_arguments(drive)
-    drive.set_defaults(func=run_drive)
+# What a drive raises for something the user can fix (the CLI's one line and exit 2; a worker
+# of carrt-sim-data writes the same line into the placement's log)
+DRIVE_ERRORS = (UserError, LinkError, FirmwareBuildError, AvrEmulatorError)
 
 
-def _expert_noise_argument(parser: argparse.ArgumentParser, when: str) -> None:
-    """The imperfect person: the same σ on demonstrations and on take-overs, so a study's noisy
-    demonstrator does not become a clean one when it takes over from the policy."""
-    parser.add_argument(
-        "--expert-noise",
-        type=finite_non_negative,
-        default=0.0,
-        metavar="SIGMA",
-        help=f"{when}, add Gaussian noise of this σ to every expert command (the paper's "
-        "imperfect demonstrations: 0.5, 1.0)",
-    )
-    parser.add_argument(
-        "--expert-noise-tau",
-        type=finite_non_negative,
-        default=0.0,
-        metavar="SECONDS",
-        help="how long the expert's error lasts (an Ornstein-Uhlenbeck process, the same σ per "
-        "command); 0 (default): a fresh error every command",
-    )
+@dataclass(frozen=True)
+class DriveConfig:
+    """One `carrt teleop` or `carrt drive` as data: made from the command line in one place
+    (carrt/session_cmd.py), or by code (`carrt eval`, `carrt-sim-data`, the training loop),
+    which never builds an argv. Frozen and picklable: a worker process gets one as its job.
+    The fields are the flags of the same names (`sets`: the --set items)."""
+
+    model: str | None = None  # the policy, .onnx or `demo`; None: teleop (a person or the expert)
+    rig: str = "car"  # a row of carrt/rigs.py (the command line's --rig, --sim, --board)
+    config: str | None = None  # the car TOML; None: built-in defaults
+    sets: tuple[str, ...] = ()  # SECTION.KEY=VALUE overrides of the car config
+    port: str | None = None  # overrides serial.port
+    camera: str | None = None  # overrides camera.source
+    record: bool = False
+    out: str | None = None  # episode directory, overrides episodes.dir
+    duration: float | None = None  # s; None: until stopped
+    seed: int = 0  # noise injection; on the simulator also the camera's phase and random starts
+    summary_json: str | None = None
+    view: str | None = None  # [HOST:]PORT of the live view
+    # the simulator's (rows of carrt/rigs.py that say simulator)
+    layout: str = "easy"
+    track_seed: int = 0
+    realtime: bool = False  # forced by a person driving, a live view, or an emulated board
+    episodes: int | None = None
+    laps: int | None = None
+    plot: str | None = None
+    random_start: bool = False
+    pad: bool = False  # a joystick instead of the keyboard window
+    expert: bool = False  # teleop --expert auto: the scripted expert drives
+    autopilot: bool = False  # the policy drives and the simulator's pilot re-arms
+    expert_intervene: bool = False
+    expert_noise: float = 0.0
+    expert_noise_tau: float = 0.0  # s the expert's error lasts
+
+    @property
+    def command(self) -> str:
+        return "teleop" if self.model is None else "drive"
 
 
-def _common_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", help="car TOML (default: built-in defaults)")
-    parser.add_argument(
-        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="override a key"
-    )
-    parser.add_argument("--port", help="serial port (overrides serial.port)")
-    parser.add_argument("--camera", help="camera source (overrides camera.source)")
-    parser.add_argument("--record", action="store_true", help="record episodes")
-    parser.add_argument("--out", help="episode directory (overrides episodes.dir)")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds")
-    parser.add_argument("--seed", type=int, default=0, help="noise injection seed")
-    parser.add_argument("--summary-json", help="also write the end-of-run summary here")
-    parser.add_argument(
-        "--view",
-        metavar="[HOST:]PORT",
-        help="watch in a browser: camera and crop, mode, actions, plan, timings, link (PORT "
-        "serves on localhost; another HOST, e.g. 0.0.0.0:8090, needs the token printed at "
-        "start; the page can only e-stop)",
-    )
-    parser.add_argument(
-        "--rig",
-        metavar="NAME",
-        help="what to drive, from carrt/rigs.py's table: "
-        + "; ".join(f"{k.name}: {k.summary}" for k in rigs.RIGS.values())
-        + " (default: car)",
-    )
-    sim = parser.add_argument_group("simulator (no car needed)")
-    sim.add_argument("--sim", action="store_true", help="drive the built-in simulator (--rig sim)")
-    sim.add_argument(
-        "--layout",
-        default="easy",
-        choices=layouts.NAMES,
-        help="obstacles: none, 2, 8, or mixed (4-10 per placement)",
-    )
-    sim.add_argument("--track-seed", type=int, default=0, help="obstacle placement seed")
-    sim.add_argument(
-        "--board",
-        choices=("virtual", "avr"),
-        help="the simulator's board behind the pty in real time: the C core built for this "
-        "machine (virtual, default: --rig sim) or the firmware binary on an emulated ATmega328P "
-        "(avr: --rig avr; implies --realtime, needs gcc-avr arduino-core-avr simavr "
-        "libsimavr-dev)",
-    )
-    sim.add_argument(
-        "--realtime",
-        action="store_true",
-        help="run at wall-clock speed through the pty (default when a person drives or "
-        "--view watches)",
-    )
-    sim.add_argument(
-        "--episodes", type=int,
-        help="with --expert/--autopilot: stop after this many episodes (each ends after --laps "
-        "laps, 1 unless given, or at a collision)",
-    )  # fmt: skip
-    sim.add_argument(
-        "--laps", type=int,
-        help="with --expert/--autopilot: end an episode after this many laps (default: endless, "
-        "or 1 with --episodes)",
-    )  # fmt: skip
-    sim.add_argument("--plot", help="write the run's top-down trajectory plot here (PNG)")
-    sim.add_argument(
-        "--random-start",
-        action="store_true",
-        help="with --expert/--autopilot: start every episode at a random place on the track",
-    )
-    sim.add_argument(
-        "--pad", action="store_true", help="drive the simulator with a joystick (default: keyboard)"
-    )
+@dataclass
+class DriveResult:
+    """What `run_session` returns: the loop's summary (laps, collisions, timings), the rig's
+    own results (the simulator's: `carrt.sim.rig.SimRun`, metrics and trajectory; None on the
+    car) and the signal that ended the run, if one did."""
+
+    summary: LoopSummary
+    rig: Any = None
+    stopped_by: int | None = None
+
+    @property
+    def exit_code(self) -> int:
+        """The command's: 0, or 128 + the signal that stopped it (130 for Ctrl-C)."""
+        return 128 + self.stopped_by if self.stopped_by else 0
 
 
 # The simulated car has no gearbox to strip: let it use the whole throttle range unless the
@@ -164,34 +103,38 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
 SIM_DEFAULTS = ("pwm.max_forward=1.0", "pwm.max_reverse=1.0")
 
 
-def load_config(args: argparse.Namespace) -> car_config.CarConfig:
-    simulated = rigs.chosen(args).simulator
-    overrides = [*(SIM_DEFAULTS if simulated else ()), *args.set]
-    for flag, key in (
-        ("port", "serial.port"),
-        ("camera", "camera.source"),
-        ("out", "episodes.dir"),
-    ):
-        value = getattr(args, flag, None)
+def load_config(cfg: DriveConfig) -> car_config.CarConfig:
+    """The car config the drive runs with: the TOML, the simulator's throttle range, the
+    --set items, then the flags that override a key."""
+    simulated = rigs.lookup(cfg.rig).simulator
+    overrides = [*(SIM_DEFAULTS if simulated else ()), *cfg.sets]
+    for value, key in ((cfg.port, "serial.port"), (cfg.camera, "camera.source"),
+                       (cfg.out, "episodes.dir")):  # fmt: skip
         if value is not None:
             overrides.append(f'{key}="{value}"')
-    return car_config.load(args.config, overrides)
+    return car_config.load(cfg.config, overrides)
 
 
-def run_teleop(args: argparse.Namespace) -> int:
-    return _run(args, load_config(args), model_path=None)
+def _quiet(_line: str) -> None:
+    """Where a session's lines go when its caller wants none (`carrt eval`, code)."""
 
 
-def run_drive(args: argparse.Namespace) -> int:
-    if args.model is None:
-        raise UserError(
-            "--model is required: a policy .onnx exported by carrt-export, or demo for the "
-            "shipped one (carrt drive --sim --model demo)"
-        )
-    return _run(args, load_config(args), model_path=args.model)
+def run_session(
+    cfg: DriveConfig,
+    *,
+    log: logging.Logger | None = None,
+    out: TextIO | None = None,
+    progress: TextIO | None = None,
+) -> DriveResult:
+    """Drive once, as `cfg` says, and leave the car stopped; return what the run did.
 
-
-def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str | None) -> int:
+    Nothing is printed unless asked: `log` takes the start-up and mode lines (the command line
+    gives carrt.session's logger, so -v and -q apply), `out` the end-of-run report (the loop's
+    summary, the simulator's metrics and saved files), `progress` the recording bar (shown
+    where it is a terminal). Warnings still go through the `carrt` loggers. Raises one of
+    DRIVE_ERRORS for what the user can fix."""
+    config = load_config(cfg)
+    say = log.info if log is not None else _quiet
     # Imported here: OpenCV, onnxruntime and pygame cost a second of start-up on a Jetson,
     # which `carrt check` and `carrt episodes` should not pay.
     from carrt.episodes.writer import EpisodeWriter
@@ -199,29 +142,28 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
     from carrt.noise import NoiseInjector
     from carrt.policy import OnnxPolicy
 
-    for flag in ("episodes", "laps"):
-        value = getattr(args, flag, None)
+    for flag, value in (("episodes", cfg.episodes), ("laps", cfg.laps)):
         if value is not None and value < 1:
             raise UserError(f"--{flag}: expected at least 1, got {value}")
     policy = None
-    if model_path is not None:
+    if cfg.model is not None:
         policy = OnnxPolicy(
-            model_path,
+            cfg.model,
             providers=tuple(config.loop.providers),
             intra_op_threads=config.loop.intra_op_threads,
             control_period_s=1.0 / config.loop.rate_hz,
         )
         warm = policy.warm_up()
-        LOG.info(f"model {policy.path.name}: {policy.provider}, warm-up {warm[-1] * 1e3:.1f} ms")
+        say(f"model {policy.path.name}: {policy.provider}, warm-up {warm[-1] * 1e3:.1f} ms")
 
     with contextlib.ExitStack() as stack:
         view = None
-        if getattr(args, "view", None) is not None:
+        if cfg.view is not None:
             from carrt.view.server import ViewServer
 
-            view = ViewServer(args.view)  # binds now: a port in use ends here, car untouched
+            view = ViewServer(cfg.view)  # binds now: a port in use ends here, car untouched
             stack.callback(view.close)
-        rig = rigs.open_rig(stack, args, config, driving=policy is not None)
+        rig = rigs.open_rig(stack, cfg, config, driving=policy is not None)
         link = rig.link
         ack = link.keep_config(car_config.board_config(config))  # and after every reboot
         if ack.result != 0:
@@ -231,10 +173,10 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             )
 
         sink = None
-        if args.record:  # before the car moves: a disk without room refuses here
+        if cfg.record:  # before the car moves: a disk without room refuses here
             room = check_room(config.episodes.dir, config.loop.rate_hz,
                               config.episodes.min_free_minutes)  # fmt: skip
-            LOG.info(room)
+            say(room)
             sink = EpisodeWriter(
                 config.episodes.dir,
                 queue_steps=config.episodes.queue_steps,
@@ -251,25 +193,25 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             policy=policy,
             sink=sink,
             noise=(
-                NoiseInjector(config.noise, seed=args.seed)
+                NoiseInjector(config.noise, seed=cfg.seed)
                 if policy is None or config.noise.during_auto
                 else None
             ),
             collisions=rig.collisions,
         )
-        metadata = _episode_metadata(config, policy, link, "drive" if policy else "teleop")
-        if rigs.chosen(args).simulator:
-            metadata["sim"] = {"layout": args.layout, "track_seed": args.track_seed}
+        metadata = _episode_metadata(config, policy, link, cfg.command)
+        if rigs.lookup(cfg.rig).simulator:
+            metadata["sim"] = {"layout": cfg.layout, "track_seed": cfg.track_seed}
         loop = ControlLoop(
             parts,
             config,
             allow_auto=policy is not None,
-            record=args.record,
+            record=cfg.record,
             episode_metadata=metadata,
-            max_steps=None if args.duration is None else round(args.duration * config.loop.rate_hz),
+            max_steps=None if cfg.duration is None else round(cfg.duration * config.loop.rate_hz),
             # the scripted expert arms and disarms once per episode: its mode changes are
             # detail (-v), not news, or a 20-episode recording prints 40 of them
-            log=LOG.debug if getattr(args, "expert", None) == "auto" else LOG.info,
+            log=_quiet if log is None else log.debug if cfg.expert else log.info,
         )
         for follower in rig.follows_mode:  # the sim's pilot and trajectory tracker
             follower.mode_source = lambda: loop.arbiter.mode
@@ -278,19 +220,21 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
         if view is not None:
             from carrt.view.live import live_view
 
-            live_view(view, loop, config, "drive" if policy else "teleop")
+            live_view(view, loop, config, cfg.command)
         rig.joystick.start(on_estop=lambda: loop.estop("joystick"))
         stack.callback(rig.joystick.stop)
         stopped_by = _stop_on_signals(loop, stack)
-        LOG.info(f"carrt {'drive' if policy else 'teleop'}: {rig.describe}")
-        with recording_bar(loop, enabled=args.record):
+        say(f"carrt {cfg.command}: {rig.describe}")
+        with recording_bar(loop, enabled=cfg.record and progress is not None, stream=progress):
             summary = loop.run()
-    print(summary.render())
+    if out is not None:
+        print(summary.render(), file=out)
+    result = DriveResult(summary, stopped_by=stopped_by[0] if stopped_by else None)
     try:  # the simulator's run files and the summary: a full disk here is one line too
         if rig.finish is not None:
-            rig.finish(summary)
-        if args.summary_json:
-            Path(args.summary_json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
+            result.rig = rig.finish(summary, out)
+        if cfg.summary_json:
+            Path(cfg.summary_json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
     except OSError as exc:
         if summary.write_error is None:
             raise UserError(
@@ -303,9 +247,8 @@ def _run(args: argparse.Namespace, config: car_config.CarConfig, model_path: str
             f"recording failed: {summary.write_error}; the episodes written before it are whole "
             "(carrt episodes show --verify)"
         )
-    # Ctrl-C ends a drive cleanly (summary, episodes closed, car stopped), and still exits as
-    # every other command stopped by a signal does: 128 + the signal (130 for Ctrl-C).
-    return 128 + stopped_by[0] if stopped_by else 0
+    # Ctrl-C ends a drive cleanly (summary, episodes closed, car stopped): result.stopped_by
+    return result
 
 
 def _episode_metadata(config, policy, link: BoardLink, mode: str) -> dict[str, Any]:
@@ -351,4 +294,4 @@ def _stop_on_signals(loop: Any, stack: contextlib.ExitStack) -> list[int]:
     return caught
 
 
-__all__ = ["LinkError", "add_parsers"]
+__all__ = ["DRIVE_ERRORS", "DriveConfig", "DriveResult", "LinkError", "run_session"]

@@ -9,6 +9,7 @@ import pytest
 
 from carrt import rigs
 from carrt.cli import build_parser, main
+from carrt.session_cmd import drive_config
 from firmware_bridge.virtual import VirtualBoard
 
 
@@ -22,12 +23,17 @@ def parse(*argv: str):
     return build_parser().parse_args(["drive", "--model", "demo", *argv])
 
 
+def chosen(args):
+    """The row the command line's drive names."""
+    return rigs.lookup(drive_config(args).rig)
+
+
 @pytest.mark.parametrize("name", sorted(rigs.RIGS))
 def test_every_registered_rig_resolves(name):
-    kind = rigs.chosen(parse("--rig", name))
+    kind = chosen(parse("--rig", name))
     assert kind is rigs.RIGS[name] and kind.name == name and kind.summary
     factory = rigs.load(kind.factory)
-    assert {"stack", "args", "config", "driving", "kind"} <= set(
+    assert {"stack", "drive", "config", "driving", "kind"} <= set(
         inspect.signature(factory).parameters
     )
     assert (kind.board is not None) == kind.simulator, "a simulator rig names its board"
@@ -37,10 +43,10 @@ def test_every_registered_rig_resolves(name):
 
 
 def test_the_older_flags_choose_rows_of_the_same_table():
-    assert rigs.chosen(parse()).name == "car"
-    assert rigs.chosen(parse("--sim")).name == "sim"
-    assert rigs.chosen(parse("--sim", "--board", "virtual")).name == "sim"
-    assert rigs.chosen(parse("--sim", "--board", "avr")).name == "avr"
+    assert chosen(parse()).name == "car"
+    assert chosen(parse("--sim")).name == "sim"
+    assert chosen(parse("--sim", "--board", "virtual")).name == "sim"
+    assert chosen(parse("--sim", "--board", "avr")).name == "avr"
     assert set(rigs.BOARD_RIGS.values()) <= set(rigs.RIGS)
 
 

@@ -22,9 +22,6 @@ Numbers per run, then mean ± std over every (placement, seed) run:
 
 from __future__ import annotations
 
-import argparse
-import contextlib
-import io
 import math
 from pathlib import Path
 from typing import Any
@@ -51,11 +48,14 @@ def evaluate(
     jobs: int = 1,
     *,
     intervene: bool = False,
+    isolated: bool = False,
 ) -> dict[str, Any]:
     """Drive `model_path` (None: the scripted expert) on every placement × seed.
 
     Returns {"config": ..., "runs": [per-run dict], "aggregate": {metric: {"mean", "std"}}}.
-    jobs > 1 runs placements in that many 'spawn' processes, one math thread each (pool.py).
+    jobs > 1 runs placements in that many 'spawn' processes, one math thread each (pool.py);
+    `isolated`: even one job runs in such a process, never in this one (the training loop's
+    process holds torch, and the simulator does not run beside it).
     """
     tasks = [
         (None if model_path is None else str(model_path), layout, int(t), float(seconds), int(s),
@@ -63,7 +63,7 @@ def evaluate(
         for t in tracks
         for s in seeds
     ]  # fmt: skip
-    if jobs > 1 and len(tasks) > 1:
+    if isolated or (jobs > 1 and len(tasks) > 1):
         with worker_pool(min(jobs, len(tasks)), "spawn") as pool:
             runs = list(pool.map(run_one, *zip(*tasks, strict=True)))
     else:
@@ -90,27 +90,23 @@ def run_one(
     seed: int,
     intervene: bool = False,
 ) -> dict[str, Any]:
-    """One drive through the commands' own parser and session; its chatter is swallowed, its
-    metrics kept. The parser is carrt.session's (teleop and drive), not the CLI's: the
-    simulator sits below the command line and never imports it."""
-    from carrt.session import add_parsers
+    """One drive: exactly the `carrt drive --sim --autopilot` (or, with no model, `carrt teleop
+    --sim --expert auto`) a user would type, run from its config; nothing said, metrics kept."""
+    from carrt.session import DriveConfig, run_session
 
-    if model_path is None:
-        argv = ["teleop", "--sim", "--expert", "auto"]
-    else:
-        argv = ["drive", "--sim", "--autopilot", "--model", model_path]
-        if intervene:
-            argv.append("--expert-intervene")
-    argv += ["--layout", layout, "--track-seed", str(track), "--duration", str(seconds)]
-    argv += ["--seed", str(seed)]
-    parser = argparse.ArgumentParser(prog="carrt")
-    add_parsers(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    got: dict[str, Any] = {}
-    args.on_metrics = lambda result, recorder: got.update(result=result, recorder=recorder)
-    with contextlib.redirect_stdout(io.StringIO()):
-        args.func(args)
-    m, recorder = got["result"], got["recorder"]
+    drive = DriveConfig(
+        model=model_path,
+        rig="sim",
+        expert=model_path is None,
+        autopilot=model_path is not None,
+        expert_intervene=model_path is not None and intervene,
+        layout=layout,
+        track_seed=track,
+        duration=seconds,
+        seed=seed,
+    )
+    sim = run_session(drive).rig
+    m, recorder = sim.metrics, sim.recorder
     span = (recorder.t[-1] - recorder.t[0]) if len(recorder.t) > 1 else 0.0
     minutes = span / 60.0
     return {

@@ -10,12 +10,9 @@ live view watches): the same loop, arbitration and C core, with the link in-proc
 
 from __future__ import annotations
 
-import argparse
 import contextlib
-import dataclasses
 import json
 import random
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -64,63 +61,38 @@ class Tracker:
         return collided
 
 
-@dataclass(frozen=True)
-class SimRigConfig:
-    """Everything the simulator's rig takes from the command line, read once (carrt teleop /
-    drive --sim; `carrt eval` and the tests build one the same way)."""
+@dataclass
+class SimRun:
+    """What a drive on the simulator measured (`DriveResult.rig`): the paper's metrics and the
+    trajectory they were computed from."""
 
-    layout: str = "easy"
-    track_seed: int = 0
-    seed: int = 0  # noise injection, the camera's phase, random starts
-    realtime: bool = False  # forced by a person driving, a live view, or an emulated board
-    view: str | None = None  # --view: someone watches, so the simulator runs in real time
-    expert: bool = False  # --expert auto: the scripted expert drives (teleop)
-    autopilot: bool = False  # --autopilot: the policy drives and the pilot re-arms (drive)
-    pad: bool = False  # a joystick instead of the keyboard window
-    expert_intervene: bool = False
-    expert_noise: float = 0.0
-    expert_noise_tau: float = 0.0  # s the expert's error lasts (SimPilot._person_error)
-    random_start: bool = False
-    episodes: int | None = None
-    laps: int | None = None
-    out: str | None = None
-    plot: str | None = None
-    on_metrics: Callable[[Any, Any], None] | None = None  # `carrt eval` collects, not prints
-
-    @classmethod
-    def from_args(cls, args: argparse.Namespace) -> SimRigConfig:
-        names = {f.name for f in dataclasses.fields(cls)} - {"expert"}
-        values = {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
-        return cls(expert=getattr(args, "expert", None) == "auto", **values)
-
-    @property
-    def scripted(self) -> bool:
-        return self.expert or self.autopilot
+    metrics: Any  # carrt.sim.metrics.RunMetrics
+    recorder: TrajectoryRecorder
 
 
 def open_sim_rig(
     stack: contextlib.ExitStack,
-    args: argparse.Namespace,
+    drive: Any,
     config: Any,
     *,
     driving: bool,
     kind: RigKind,
 ) -> Rig:
-    """The simulator as a rig (a factory of carrt/rigs.py), with `kind.board` as its board."""
+    """The simulator as a rig (a factory of carrt/rigs.py), with `kind.board` as its board;
+    `drive` (a carrt.session.DriveConfig) says the placement, who drives and how fast."""
     from carrt.sim.expert import ScriptedExpert
     from carrt.sim.render import Renderer
     from carrt.sim.world import SimWorld
 
-    sim = SimRigConfig.from_args(args)
-    world = SimWorld(layout=sim.layout, seed=sim.track_seed)
+    world = SimWorld(layout=drive.layout, seed=drive.track_seed)
     plant = SimPlant(world)
-    scripted = sim.scripted
-    if not scripted and not sim.pad:
+    scripted = drive.expert or drive.autopilot  # no person at the controls
+    if not scripted and not drive.pad:
         from carrt.sim.keyboard import require_display
 
         require_display()  # before anything starts: a window nobody can see drives nothing
     # a person at the keys, or watching the live view, needs the car at the speed of life
-    realtime = sim.realtime or not scripted or sim.view is not None or kind.always_realtime
+    realtime = drive.realtime or not scripted or drive.view is not None or kind.always_realtime
     if realtime:
         clock: Any = WallClock()
         board = load(kind.board)(plant).start()
@@ -135,14 +107,14 @@ def open_sim_rig(
         where = "on the simulated clock"
     stack.callback(link.close)
     # The camera's phase against the loop's ticks is arbitrary on a real car: draw it per run.
-    phase = random.Random(sim.seed).uniform(0.0, 1.0 / 30.0)
+    phase = random.Random(drive.seed).uniform(0.0, 1.0 / 30.0)
     camera = SimCamera(plant, Renderer(world.track), clock, realtime=realtime, phase_s=phase)
     camera.start()
     stack.callback(camera.stop)
 
     pilot = None
     if scripted:
-        intervene = driving and sim.expert_intervene
+        intervene = driving and drive.expert_intervene
         wants_expert = not driving or intervene
         expert = ScriptedExpert(world.track, world.params) if wants_expert else None
         pilot = SimPilot(
@@ -150,18 +122,18 @@ def open_sim_rig(
             clock,
             expert=expert,
             engage_auto=driving,
-            episodes=sim.episodes,
+            episodes=drive.episodes,
             # --episodes 2 alone must end: an expert that never crashes would otherwise drive
             # one endless episode (measured: 1,613 laps in 300 s of wall time)
-            laps_per_episode=sim.laps if sim.laps or not sim.episodes else 1,
-            random_start=sim.random_start,
-            expert_noise=sim.expert_noise,
-            expert_noise_tau=sim.expert_noise_tau,
-            seed=sim.seed,
+            laps_per_episode=drive.laps if drive.laps or not drive.episodes else 1,
+            random_start=drive.random_start,
+            expert_noise=drive.expert_noise,
+            expert_noise_tau=drive.expert_noise_tau,
+            seed=drive.seed,
             intervene=intervene,
         )
         joystick: Any = pilot
-    elif sim.pad:
+    elif drive.pad:
         from carrt.joystick import PygameJoystick
 
         joystick = PygameJoystick(config.joystick)
@@ -192,35 +164,35 @@ def open_sim_rig(
         camera=camera,
         link=link,
         joystick=joystick,
-        describe=f"simulator, layout {sim.layout} seed {sim.track_seed}, {where}",
+        describe=f"simulator, layout {drive.layout} seed {drive.track_seed}, {where}",
         collisions=tracker.tick,
         follows_mode=[x for x in (pilot, tracker) if x is not None],
         watches_loop=[device] if hasattr(device, "status_source") else [],
-        finish=lambda summary: _finish(sim, world, tracker, summary),
+        finish=lambda summary, out: _finish(drive, world, tracker, summary, out),
         simulated_time=not realtime,
     )
 
 
-def _finish(sim: SimRigConfig, world: Any, tracker: Tracker, summary: Any) -> None:
-    """Print the paper's simulation metrics for this run; save them with a plot under --out."""
+def _finish(drive: Any, world: Any, tracker: Tracker, summary: Any, out: Any) -> SimRun:
+    """The paper's simulation metrics for this run, said on `out` (None: not said), saved with
+    a plot under --out."""
     from carrt.sim import metrics
     from carrt.sim.runs import save_run
 
     del summary
     result = metrics.run_metrics(world.track, tracker.recorder)
-    if sim.on_metrics is not None:
-        sim.on_metrics(result, tracker.recorder)
-    else:
-        print(metrics.format_metrics(result))
-    label = f"{sim.layout}-s{sim.track_seed}"
-    if sim.out:
-        out = Path(sim.out)
-        path = save_run(out, world.track, tracker.recorder, result, label)
-        (out / "sim_metrics.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
-        print(f"run saved: {path} (and its .png trajectory plot)")
-    if sim.plot:
+    say = (lambda _line: None) if out is None else (lambda line: print(line, file=out))
+    say(metrics.format_metrics(result))
+    label = f"{drive.layout}-s{drive.track_seed}"
+    if drive.out:
+        folder = Path(drive.out)
+        path = save_run(folder, world.track, tracker.recorder, result, label)
+        (folder / "sim_metrics.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
+        say(f"run saved: {path} (and its .png trajectory plot)")
+    if drive.plot:
         a = tracker.recorder.arrays()
         metrics.plot_trajectory(
-            world.track, a["x"], a["y"], a["collision"], sim.plot, title=label, speeds=a["speed"]
+            world.track, a["x"], a["y"], a["collision"], drive.plot, title=label, speeds=a["speed"]
         )
-        print(f"trajectory plot: {sim.plot}")
+        say(f"trajectory plot: {drive.plot}")
+    return SimRun(result, tracker.recorder)
