@@ -10,6 +10,7 @@ import pytest
 
 from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import UserError
+from carrt.session import DriveConfig
 from training import sim_data
 
 
@@ -121,27 +122,24 @@ def test_a_duration_that_is_not_finite_and_positive_is_refused_by_name(
 
 
 def test_take_overs_carry_the_demonstrators_noise_to_every_placement(tmp_path):
-    """`interventions --noise σ`: each placement's `carrt drive` gets --expert-noise σ, and
-    the parser of `carrt drive` accepts it (the robustness setting's take-overs)."""
+    """`interventions --noise σ`: each placement's drive gets the expert's noise σ, as
+    `carrt drive --expert-noise σ` would (the robustness setting's take-overs)."""
     from carrt.cli import build_parser
 
     model = tmp_path / "p.onnx"
     jobs = sim_data.drive_jobs(tmp_path, model, [1000, 1001], ["hard"], 8.0, intervene=True,
                                noise=0.5, noise_tau=0.25)  # fmt: skip
     for job in jobs:
-        assert job.argv[job.argv.index("--expert-noise") + 1] == "0.5"
-        args = build_parser().parse_args(list(job.argv))
-        assert args.expert_noise == 0.5 and args.expert_intervene
-        assert args.expert_noise_tau == 0.25, "the same lasting error as the demonstrations"
+        assert job.drive.expert_noise == 0.5 and job.drive.expert_intervene
+        assert job.drive.expert_noise_tau == 0.25, "the same lasting error as the demonstrations"
     later = sim_data.drive_jobs(tmp_path, model, [1000], ["hard"], 8.0, intervene=True,
                                 seed_offset=100_000)  # fmt: skip
-    argv = later[0].argv
-    assert argv[argv.index("--seed") + 1] == "101000", "another drive of the same placement"
-    assert argv[argv.index("--track-seed") + 1] == "1000"
+    assert later[0].drive.seed == 101000, "another drive of the same placement"
+    assert later[0].drive.track_seed == 1000
     alone = sim_data.drive_jobs(tmp_path, model, [1000], ["hard"], 8.0, intervene=False)
-    assert "--expert-noise" not in alone[0].argv, "no person, no noise of theirs"
-    infinite = list(jobs[0].argv)
-    infinite[infinite.index("--expert-noise") + 1] = "inf"
+    assert alone[0].drive.expert_noise == 0.0, "no person, no noise of theirs"
+    infinite = ["drive", "--sim", "--autopilot", "--model", str(model), "--expert-intervene",
+                "--expert-noise", "inf"]  # fmt: skip
     with pytest.raises(SystemExit) as exit_:
         build_parser().parse_args(infinite)
     assert exit_.value.code == 2, "carrt drive refuses an infinite σ too"
@@ -151,8 +149,9 @@ def test_more_placements_than_a_worker_runs_all_finish(tmp_path, monkeypatch):
     """Regression: with max_tasks_per_child the pool hung once both workers had retired (CPython
     gh-115634; the take-over recording stopped forever after 100 placements)."""
     monkeypatch.setattr(sim_data, "TASKS_PER_WORKER", 2)
+    brief = DriveConfig(rig="sim", expert=True, layout="empty", duration=0.05)
     jobs = [
-        sim_data.Job(("--version",), tmp_path / f"{i}.log", tmp_path / f".done-{i}", tmp_path, i)
+        sim_data.Job(brief, tmp_path / f"{i}.log", tmp_path / f".done-{i}", tmp_path, i)
         for i in range(7)
     ]
     sim_data.run_jobs(jobs, 2, "test")
@@ -226,7 +225,7 @@ def test_publishing_merges_into_folders_another_placement_made(tmp_path):
     (out / "sim-runs" / "a.json").write_text("{}")
     (out / "20261129-010101-000").mkdir()
     (out / "20261129-010101-000" / "meta.json").write_text("{}")
-    job = sim_data.Job(("--version",), out / "logs" / "x.log", out / ".done-7", out, 7)
+    job = sim_data.Job(DriveConfig(), out / "logs" / "x.log", out / ".done-7", out, 7)
     (job.staging / "sim-runs").mkdir(parents=True)
     (job.staging / "sim-runs" / "b.json").write_text("{}")
     (job.staging / "20261129-010101-000").mkdir()

@@ -5,7 +5,8 @@
         --tracks 1000-1149
     carrt-sim-data drives --model policy.onnx --out data/crashes --tracks 1000-1019
 
-Each placement is one run of the project's own recording command, exactly what a user types:
+Each placement is one run of the project's own recording session (carrt.session.run_session,
+called with the config of what a user types):
 `carrt teleop --sim --expert auto --record` for demonstrations (the scripted expert drives from
 random places at rest, with the loop's noise injection half of the time so the recordings hold
 recoveries), and `carrt drive --sim --autopilot --expert-intervene --record` for the next
@@ -29,17 +30,11 @@ the evaluation ones (the `hard` layout's 100-199): `parse_tracks` refuses them.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import errno
-import io
 import json
-import os
-import shutil
 import signal
 import sys
 import textwrap
 from concurrent.futures import as_completed
-from dataclasses import dataclass
 from pathlib import Path
 
 from tqdm import tqdm
@@ -48,7 +43,9 @@ from carrt.arg_types import finite_non_negative, finite_positive, parse_int_list
 from carrt.episodes.format import write_json_atomic
 from carrt.episodes.reader import list_episodes, read_episode
 from carrt.errors import EXIT_USAGE, UserError
+from carrt.session import DriveConfig
 from carrt.sim.pool import worker_pool
+from training.sim_placement import Job, publish, run_placement, staging_of
 
 # Held out, never recorded for training: `carrt eval`'s default 100-104 and the study's
 # evaluation placements 105-199 (research/README.md).
@@ -57,77 +54,6 @@ TASKS_PER_WORKER = 25  # placements a worker process runs before a fresh pool re
 
 
 EXIT_INTERRUPTED = 130  # the shell's code for a command ended by SIGINT
-
-
-@dataclass(frozen=True)
-class Job:
-    """One placement's recording: the carrt argv (recording into `staging`), where it logs,
-    its done-marker and the folder it is published into."""
-
-    argv: tuple[str, ...]
-    log: Path
-    marker: Path
-    out: Path
-    track: int
-
-    @property
-    def staging(self) -> Path:
-        return staging_of(self.out, self.track)
-
-    @property
-    def complete(self) -> Path:
-        return self.out / f".complete-{self.track}"
-
-
-def staging_of(out: Path, track: int) -> Path:
-    return out / f".partial-{track}"
-
-
-def publish(job: Job) -> None:
-    """A finished placement into OUT; each step can be repeated after a kill at any point: the
-    staging folder is renamed (from then on the attempt counts), its entries are moved in
-    (folders such as sim-runs/ merged), then the marker is written."""
-    if job.staging.exists():
-        os.replace(job.staging, job.complete)
-    if job.complete.exists():
-        _merge(job.complete, job.out)
-        shutil.rmtree(job.complete)
-    job.marker.touch()
-
-
-def _merge(src: Path, dst: Path) -> None:
-    """Every entry of src into dst. Two workers publish at once: a folder (sim-runs/) the other
-    created a moment ago is merged into, never raced with a check first."""
-    for entry in sorted(src.iterdir()):
-        target = dst / entry.name
-        if (entry / "meta.json").exists():
-            _move_episode(entry, dst)
-        elif entry.is_dir():
-            try:
-                os.rename(entry, target)  # fails while target holds something
-            except OSError as exc:
-                if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY, errno.EISDIR):
-                    raise
-                _merge(entry, target)
-                entry.rmdir()
-        else:
-            os.replace(entry, target)
-
-
-def _move_episode(episode: Path, dst: Path) -> None:
-    """Episodes of placements recorded side by side can share a name (the second they began):
-    the next free serial of the same second, as the writer itself picks one; a rename onto an
-    existing episode fails, so two workers publishing at once cannot take the same name."""
-    stem = episode.name.rsplit("-", 1)[0]
-    names = [episode.name] + [f"{stem}-{n:03d}" for n in range(1000)]
-    for name in names:
-        try:
-            os.rename(episode, dst / name)
-            return
-        except OSError as exc:
-            if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY):
-                raise
-    raise UserError(f"{dst}: no free episode name for {episode.name}")
 
 
 def parse_tracks(text: str) -> list[int]:
@@ -157,12 +83,12 @@ def demo_jobs(
     jobs = []
     for i, track in enumerate(tracks):
         layout = layout_for(i, layouts)
-        argv = ("teleop", "--sim", "--expert", "auto", "--record", "--random-start",
-                "--expert-noise", str(noise), "--expert-noise-tau", str(noise_tau),
-                "--seed", str(track), "--layout", layout, "--track-seed", str(track),
-                "--episodes", str(episodes), "--laps", "1", "--out", str(staging_of(out, track)),
-                "--duration", "100000")  # fmt: skip
-        jobs.append(Job(argv, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}",
+        drive = DriveConfig(
+            rig="sim", expert=True, record=True, random_start=True, expert_noise=noise,
+            expert_noise_tau=noise_tau, seed=track, layout=layout, track_seed=track,
+            episodes=episodes, laps=1, out=str(staging_of(out, track)), duration=100000.0,
+        )  # fmt: skip
+        jobs.append(Job(drive, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}",
                         out, track))  # fmt: skip
     return jobs
 
@@ -185,23 +111,24 @@ def drive_jobs(
     without it every crash is recorded (labelled, then the auto-reset) for the world model.
     `explore`: the loop's noise injection perturbs the policy's commands too (noise.during_auto),
     so the crashes and near misses come from varied actions, not only the policy's own.
-    `sets`: `carrt drive --set` overrides for every placement (noise.amplitude=0.8, …).
+    `sets`: `carrt drive --set` car config overrides for every placement (noise.amplitude=0.8, …).
     `noise`: σ on the expert's take-over commands (the robustness setting's imperfect person),
     `noise_tau`: how long its error lasts.
     `seed_offset`: added to each placement's simulator seed (noise, starts, camera phase), so a
     later iteration whose policy is unchanged still drives new episodes, not the same ones."""
     jobs = []
-    person = ("--expert-noise", str(noise), "--expert-noise-tau", str(noise_tau))
-    take_over = ("--expert-intervene", *person) if intervene else ()
-    take_over += ("--set", "noise.during_auto=true") if explore else ()
-    take_over += tuple(arg for item in sets for arg in ("--set", item))
+    overrides = (("noise.during_auto=true",) if explore else ()) + tuple(sets)
     for i, track in enumerate(tracks):
         layout = layout_for(i, layouts)
-        argv = ("drive", "--sim", "--autopilot", *take_over, "--model", str(model),
-                "--record", "--seed", str(track + seed_offset), "--layout", layout,
-                "--track-seed", str(track),
-                "--out", str(staging_of(out, track)), "--duration", str(seconds))  # fmt: skip
-        jobs.append(Job(argv, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}",
+        drive = DriveConfig(
+            model=str(model), rig="sim", autopilot=True, expert_intervene=intervene,
+            # the person's noise is on their take-overs: no person, no noise of theirs
+            expert_noise=noise if intervene else 0.0,
+            expert_noise_tau=noise_tau if intervene else 0.0,
+            sets=overrides, record=True, seed=track + seed_offset, layout=layout,
+            track_seed=track, out=str(staging_of(out, track)), duration=float(seconds),
+        )  # fmt: skip
+        jobs.append(Job(drive, out / "logs" / f"{layout}-{track}.log", out / f".done-{track}",
                         out, track))  # fmt: skip
     return jobs
 
@@ -232,26 +159,6 @@ def same_person(out: Path, noise: float, noise_tau: float) -> None:
     write_json_atomic(path, mine)  # a kill mid-write leaves the old file or none, never half
 
 
-def _run_job(job: Job) -> tuple[Job, int]:
-    """In a pool worker: the carrt command in-process (no interpreter start per placement),
-    its output to the placement's log."""
-    from carrt.cli import main as carrt
-
-    job.log.parent.mkdir(parents=True, exist_ok=True)
-    if job.staging.exists():  # an interrupted attempt's partial output: it starts again
-        shutil.rmtree(job.staging)
-    buffer = io.StringIO()
-    with contextlib.redirect_stdout(buffer), contextlib.redirect_stderr(buffer):
-        try:
-            code = carrt(list(job.argv))
-        except SystemExit as exc:  # argparse
-            code = int(exc.code or 0)
-    job.log.write_text(buffer.getvalue())
-    if code == 0:
-        publish(job)
-    return job, code
-
-
 class Interrupted(Exception):
     """Ctrl-C, SIGINT or SIGTERM: the call ends, the finished placements kept."""
 
@@ -279,7 +186,7 @@ def run_jobs(jobs: list[Job], jobs_at_once: int, what: str) -> None:
     for first in range(0, len(todo), chunk):
         pool = worker_pool(jobs_at_once, "forkserver", ignore_interrupts=True)
         try:
-            futures = [pool.submit(_run_job, job) for job in todo[first : first + chunk]]
+            futures = [pool.submit(run_placement, job) for job in todo[first : first + chunk]]
             for future in as_completed(futures):
                 job, code = future.result()
                 bar.update()
