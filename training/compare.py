@@ -5,19 +5,16 @@ and a policy against the one before it, driven on the simulator's validation pla
 far it moved μ from the imitated policy's on the held-out frames (|Δμ|). That is not whether it
 drives better: the loop (training/iterate.py, `--drive sim`) drives each iteration's policy and
 the one before it, and each refined policy and its start, on validation placements 200-259 with
-`carrt eval` (the user's own command, as a process: the simulator never runs in the process
-that holds torch), and puts the paper's metrics, mean ± std over the runs, and their paired
-differences in the iteration's report.md. The test placements, 100-199, are never driven here.
+`carrt eval`'s own function (carrt.sim.evaluate, its runs in worker processes: the simulator
+never runs in the process that holds torch), and puts the paper's metrics, mean ± std over the
+runs, and their paired differences in the iteration's report.md. The test placements, 100-199,
+are never driven here.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import os
-import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,7 +33,7 @@ VALIDATION_FILE = "validation.json"  # in a run directory: its policy driven on 
 
 
 class DriveFailed(RuntimeError):
-    """`carrt eval` did not finish; the message is its last line."""
+    """The validation drives did not finish; the message says why in one line."""
 
 
 @dataclass(frozen=True)
@@ -138,22 +135,18 @@ def drive_validation(model: Path, run: Path, spec: DriveSpec) -> dict:
         cached = json.loads(result.read_text())
         if {k: cached.get("config", {}).get(k) for k in spec.config()} == spec.config():
             return cached
-    tmp = result.with_name(f".{result.name}.tmp")
-    argv = [sys.executable, "-m", *spec.command(model), "--jobs", str(max(1, spec.jobs)),
-            "--json", str(tmp)]  # fmt: skip
-    done = subprocess.run(argv, capture_output=True, text=True, env=_env())
-    if done.returncode != 0 or not tmp.is_file():
-        why = (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1]
-        raise DriveFailed(f"carrt eval --model {model}: {why}")
-    os.replace(tmp, result)
-    return json.loads(result.read_text())
+    from carrt.episodes.format import write_json_atomic
+    from carrt.sim.evaluate import evaluate
 
-
-def _env() -> dict:
-    """The child finds carrt where this process does (a checkout run as a script, too)."""
-    root = str(Path(importlib.util.find_spec("carrt").origin).parents[1])
-    paths = [root, *filter(None, [os.environ.get("PYTHONPATH")])]
-    return {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
+    config = spec.config()
+    try:  # the drives in worker processes: this one holds torch
+        done = evaluate(str(model), LAYOUT, config["tracks"], spec.seconds, config["seeds"],
+                        max(1, spec.jobs), isolated=True)  # fmt: skip
+    except Exception as exc:  # a bad model, a broken worker: the loop ends in one line
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DriveFailed(f"carrt eval --model {model}: {why}") from exc
+    write_json_atomic(result, done)
+    return done
 
 
 def _mean_std(values: list[float]) -> tuple[float, float]:
