@@ -203,7 +203,7 @@ def test_the_report_says_where_refinement_moved_the_plan(iteration1, sim_episode
 
 def test_carrt_train_itself_reports_no_drift(sim_episodes, tmp_path):
     """The product's carrt-train runs without the research variants: no drift section."""
-    from training.iteration import main as carrt_train
+    from training.one_run import main as carrt_train
 
     out = tmp_path / "run"
     argv = ["--episodes", str(sim_episodes), "--out", str(out), *QUICK, *steps(2, 2, 2)]

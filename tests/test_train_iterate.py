@@ -227,7 +227,7 @@ def test_research_runs_keep_one_dirl_iteration_in_place(runs, sim_episodes, tmp_
     """The machinery with `dirl` (research/variants/train.py's every run): --init continues the
     previous policy and world model (or the world model's own initialisation with
     world_model_fresh), reimitate imitates first, and policy.pt is the last stage's."""
-    from training.iteration import main as one_run
+    from training.one_run import main as one_run
 
     prev = runs[0] / "refined"
     before = ck.load_checkpoint(prev / "world_model.pt")["world_model"]

@@ -77,7 +77,7 @@ def test_carrt_train_measures_a_stage_and_the_next_run_says_its_duration_up_fron
 ):
     import torch
 
-    from training.iteration import main
+    from training.one_run import main
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     steps = WARMUP + MEASURE + 2

@@ -62,10 +62,10 @@ from carrt.episodes.reader import list_episodes
 from carrt.errors import UserError
 from training.compare import DriveFailed, DriveSpec
 from training.config import IterateConfig, UsageError
-from training.iteration import run_guarded
 from training.iteration_args import Parser, add_iteration_args, config_from
 from training.loop_config import TrainingLoopConfig, add_loop_args, loop_config
 from training.loop_config import save as save_loop_config
+from training.one_run import run_iteration
 
 
 class _Help(argparse.RawDescriptionHelpFormatter):
@@ -199,10 +199,10 @@ def dirl_config(cfg: IterateConfig) -> IterateConfig:
 
 def one_iteration(a: argparse.Namespace, cfg: IterateConfig) -> int:
     """carrt-train without --iterations: the iteration, then with --dirl its refined run."""
-    code, done = run_guarded(lambda: imitation_config(cfg))
+    code, done = run_iteration(imitation_config(cfg))
     if not (done and a.dirl):
         return code
-    code, done = run_guarded(lambda: dirl_config(cfg))
+    code, done = run_iteration(dirl_config(cfg))
     if done:
         describe_refinement(cfg)
     return code
@@ -273,7 +273,7 @@ def loop(a: argparse.Namespace, cfg: IterateConfig) -> int:
 
 
 def train(cfg: IterateConfig, what: str, after: Callable[[], None] | None = None):
-    """One run into cfg.out (training/iteration.py), skipped when it already finished; a
+    """One run into cfg.out (training/one_run.py), skipped when it already finished; a
     stopped one resumes from its checkpoints; `after` runs once it finishes, before its
     marker. (finished, exit status)."""
     folder = Path(cfg.out)
@@ -281,7 +281,7 @@ def train(cfg: IterateConfig, what: str, after: Callable[[], None] | None = None
         print(f"carrt-train: {folder}: {what} (done)")
         return True, 0
     print(f"carrt-train: {folder}: {what}", flush=True)
-    code, finished = run_guarded(lambda: cfg)
+    code, finished = run_iteration(cfg)
     finished = finished and (folder / "policy.onnx").is_file()
     if finished:
         if after is not None:

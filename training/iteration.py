@@ -1,11 +1,14 @@
-"""One training run: data → imitation (→ world model → refinement) → export → report.
+"""One training run: data → imitation (→ world model → refinement) → save → export → report.
 
     carrt-train --episodes episodes/ --out runs/iter1 --profile cpu
     carrt-train --episodes episodes/ --out runs/iter2 --init runs/iter1
     torchrun --nproc_per_node 2 training/iterate.py …          # DistributedDataParallel
 
-This is the machinery of one run: training/iterate.py (`carrt-train`) runs one or two of them
-per iteration, and the paper's whole loop from them.
+This is the machinery of one run, `run()` read top to bottom: training/iterate.py
+(`carrt-train`) runs one or two of them per iteration through training/one_run.py (which turns
+what can go wrong into one line and the exit status), and the paper's whole loop from them.
+Each stage's loop, its loss beside its optimizer step, is in its own module (imitation.py,
+world_model_stage.py, refine.py).
 
 A run without `dirl` (carrt-train's default) is imitation alone: from scratch, or with --init
 from the previous policy (and its input scaling) on every labelled frame given, the person's
@@ -24,8 +27,7 @@ Every number lives in IterateConfig (training/config.py); a profile name picks m
 a preset of steps and batch sizes (PRESETS), and `--set field=value` overrides any field.
 Checkpoints land in OUT/checkpoints every ckpt_every steps; Ctrl-C or SIGTERM finishes the step
 in flight and checkpoints it (a second Ctrl-C stops at once), and running the same command again
-resumes exactly where the run stopped. Only rank 0 writes files. Exit status: 0 done (or stopped by
-stop_after), 1 diverged or export refused, 2 bad input, 130 interrupted.
+resumes exactly where the run stopped. Only rank 0 writes files.
 
 Research variants (research/variants/: refinement by search or by outcomes, the counterfactual
 check, the drift report) plug in through `Variants`; this module never imports them, and
@@ -36,7 +38,6 @@ from __future__ import annotations
 
 import dataclasses
 import pickle
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,26 +50,10 @@ from carrt.model_contract import sim_placements
 from training import checkpoint as ck
 from training.config import IterateConfig, UsageError
 from training.data import Normalisation, compute_normalisation, data_digest
-from training.iteration_args import Parser, add_iteration_args, config_from, init_paths
+from training.iteration_args import init_paths
 from training.stage_data import StageData, read_episodes, read_world_episodes
-from training.trainer import (
-    Budget,
-    Dist,
-    Interrupted,
-    RunContext,
-    StopRequested,
-    init_distributed,
-    shutdown_distributed,
-)
+from training.trainer import Budget, Dist, RunContext
 
-
-def parse_args(argv: list[str] | None = None, prog: str = "carrt-train") -> IterateConfig:
-    p = Parser(prog=prog, description=__doc__.split("\n")[0])
-    add_iteration_args(p)
-    return config_from(p.parse_args(argv))
-
-
-# ------------------------------------------------------------------------------------- the run
 RESEARCH_ONLY = ("refine_search", "refine_outcomes", "counterfactual_starts")
 
 
@@ -93,6 +78,10 @@ class Variants:
                 "(a repository checkout), not carrt-train"
             )
 
+    def refinement(self, *args):
+        """The refinement stage of a variant (its StageResult), or None for the paper's."""
+        return None if self.refine is None else self.refine(*args)
+
 
 @dataclass
 class Start:
@@ -109,8 +98,13 @@ class Start:
 
 
 def run(cfg: IterateConfig, dist: Dist | None = None, variants: Variants | None = None) -> dict:
-    """One DIRL iteration, as Algorithm 1 reads: data → (imitation) → world model → refinement,
-    then the policy exported and the run reported. Returns a summary (also on non-zero ranks)."""
+    """One iteration, as Algorithm 1 reads: its data and starting point, then imitation, the
+    world model and refinement (those the start asks for, in that order), the models saved,
+    the policy exported and the run reported. Returns a summary (also on non-zero ranks)."""
+    from training.imitation import train_imitation
+    from training.refine import train_refine
+    from training.world_model_stage import collision_class_weight, train_world_model
+
     dist = dist or Dist()
     variants = variants or Variants()
     cfg.validate()
@@ -120,29 +114,35 @@ def run(cfg: IterateConfig, dist: Dist | None = None, variants: Variants | None 
     start = starting_point(cfg, train_eps)
     policy, world_model = build_models(cfg, start)
     digest = data_digest([*train_eps, *(world.train if world else [])])
-    existing = resume_checkpoints(cfg, start, digest, policy, world_model)
+    resume = resume_checkpoints(cfg, start, digest, policy, world_model)
     ctx, common = run_context(cfg, dist, start, digest, train_eps)
-    if ctx.pace is not None:
-        ctx.pace.announce(cfg.profile, [
-            (s, getattr(cfg, f"{s}_steps") - (existing[s]["step"] if s in existing else 0),
-             getattr(cfg, f"{s}_batch_size")) for s in start.stages
-        ])  # fmt: skip
+    announce(cfg, ctx, start, resume)
     data = StageData(cfg, train_eps, val_eps, world)
     results = {}
     try:
-        for stage in start.stages:
-            results[stage] = train_stage(
-                stage,
-                cfg,
-                policy,
-                world_model,
-                data,
-                start.norm,
-                ctx,
-                existing.get(stage),
-                variants,
-                start.refine_start,
+        if "imitation" in start.stages:
+            free, val_free = data.imitation()
+            results["imitation"] = train_imitation(
+                cfg, policy, free, ctx, resume=resume.get("imitation"), val_dataset=val_free
             )
+        if "world_model" in start.stages:
+            windows = data.world_windows
+            results["world_model"] = train_world_model(
+                cfg, world_model, windows, start.norm, ctx, policy=policy,
+                collision_weight=cfg.collision_weight
+                or collision_class_weight(windows.step_labels()),
+                resume=resume.get("world_model"), val_dataset=data.world_val_windows,
+            )  # fmt: skip
+        if "refine" in start.stages:
+            demonstrations = data.demonstrations() if cfg.refine_w_imitation else None
+            results["refine"] = variants.refinement(
+                cfg, policy, world_model, data, start.norm, ctx, resume.get("refine"),
+                demonstrations,
+            ) or train_refine(
+                cfg, policy, world_model, data.windows, start.norm, ctx,
+                resume=resume.get("refine"), val_dataset=data.val_windows,
+                demonstrations=demonstrations, start_policy=start.refine_start,
+            )  # fmt: skip
     finally:
         if ctx.writer is not None:
             ctx.writer.flush()
@@ -150,15 +150,19 @@ def run(cfg: IterateConfig, dist: Dist | None = None, variants: Variants | None 
     if not dist.is_main:
         return summary
     save_final(cfg, common, start, results, policy, world_model)
-    from training.run_report import finish_run
+    from training.export_step import export_policy
+    from training.run_report import report_run
 
+    exported = export_policy(cfg, Path(cfg.out))
     summary.update(
-        finish_run(
-            cfg, Path(cfg.out), policy=policy, world_model=world_model, norm=start.norm,
-            train_eps=train_eps, val_eps=val_eps, episodes=episodes, digest=digest,
-            world=world, results=results, iteration=start.iteration, device=dist.device,
-            writer=ctx.writer, world_size=dist.world_size, extras=variants.report,
-        )
+        report_run(
+            cfg, Path(cfg.out), exported, policy=policy, world_model=world_model,
+            norm=start.norm, train_eps=train_eps, val_eps=val_eps, episodes=episodes,
+            digest=digest, world=world, results=results, iteration=start.iteration,
+            device=dist.device, writer=ctx.writer, world_size=dist.world_size,
+            extras=variants.report,
+        ),
+        exit_code=exported.exit_code,
     )  # fmt: skip
     ctx.writer.close()
     return summary
@@ -252,6 +256,16 @@ def run_context(cfg: IterateConfig, dist: Dist, start: Start, digest: str, train
     return ctx, common
 
 
+def announce(cfg: IterateConfig, ctx: RunContext, start: Start, resume: dict) -> None:
+    """training/pace.py, before the first step: each stage's steps still to take."""
+    if ctx.pace is None:
+        return
+    ctx.pace.announce(cfg.profile, [
+        (s, getattr(cfg, f"{s}_steps") - (resume[s]["step"] if s in resume else 0),
+         getattr(cfg, f"{s}_batch_size")) for s in start.stages
+    ])  # fmt: skip
+
+
 def pace_of(cfg: IterateConfig, dist: Dist):
     """training/pace.py on rank 0 with progress on: the expected duration and slow-run warning."""
     if not (cfg.progress and dist.is_main):
@@ -259,36 +273,6 @@ def pace_of(cfg: IterateConfig, dist: Dist):
     from training.pace import Pace
 
     return Pace(f"{dist.device}/threads{torch.get_num_threads()}")
-
-
-def train_stage(
-    stage, cfg, policy, world_model, data: StageData, norm, ctx, resume, variants=None,
-    refine_start=None,
-):  # fmt: skip
-    from training.imitation import train_imitation
-    from training.refine import train_refine
-    from training.world_model_stage import collision_class_weight, train_world_model
-
-    if stage == "imitation":
-        free, val_free = data.imitation()
-        return train_imitation(cfg, policy, free, ctx, resume=resume, val_dataset=val_free)
-    if stage == "world_model":
-        windows = data.world_windows
-        weight = cfg.collision_weight or collision_class_weight(windows.step_labels())
-        return train_world_model(
-            cfg, world_model, windows, norm, ctx, collision_weight=weight,
-            policy=policy, resume=resume, val_dataset=data.world_val_windows,
-        )  # fmt: skip
-    demonstrations = data.demonstrations() if cfg.refine_w_imitation else None
-    if variants is not None and variants.refine is not None:
-        result = variants.refine(cfg, policy, world_model, data, norm, ctx, resume, demonstrations)
-        if result is not None:
-            return result
-    return train_refine(
-        cfg, policy, world_model, data.windows, norm, ctx,
-        resume=resume, val_dataset=data.val_windows, demonstrations=demonstrations,
-        start_policy=refine_start,
-    )  # fmt: skip
 
 
 def save_final(cfg, common: dict, start: Start, results: dict, policy, world_model) -> None:
@@ -314,65 +298,3 @@ def _load_weights(c: dict, policy, world_model) -> None:
         policy.load_state_dict(c["policy"])
     if c["world_model"] is not None and world_model is not None:
         world_model.load_state_dict(c["world_model"])
-
-
-def main(
-    argv: list[str] | None = None,
-    variants: Variants | None = None,
-    prog: str = "carrt-train",
-    dirl: bool = False,
-) -> int:
-    """One run from the command line (`dirl`: with the world model and refinement, its policy.*
-    the refined one: research/variants/train.py's); errors are one line (exit codes: module
-    docstring). carrt-train itself is training/iterate.py."""
-    return guarded(lambda: dataclasses.replace(parse_args(argv, prog), dirl=dirl), variants)
-
-
-def guarded(make_config: Callable[[], IterateConfig], variants: Variants | None = None) -> int:
-    """Run the iteration `make_config()` describes, turning what can go wrong into one line and
-    the exit status."""
-    return run_guarded(make_config, variants)[0]
-
-
-def run_guarded(
-    make_config: Callable[[], IterateConfig], variants: Variants | None = None
-) -> tuple[int, bool]:
-    """guarded()'s exit status, and whether the run got to its end (not when it stopped at
-    stop_after, failed or was interrupted): iterate.py runs each of its steps through this."""
-    dist = None
-    try:
-        cfg = make_config()
-        try:
-            dist = init_distributed(cfg.device)
-        except ValueError as exc:
-            raise UsageError(str(exc)) from None
-        summary = run(cfg, dist, variants)
-        if dist.is_main:
-            for line in summary.get("lines", []):
-                print(line)
-        code = summary.get("exit_code", 0)
-        return code, code == 0
-    except (UserError, ck.CheckpointError) as exc:
-        if dist is None or dist.is_main:
-            print(f"carrt-train: error: {exc}", file=sys.stderr)
-        return 2, False
-    except StopRequested as exc:
-        if dist is None or dist.is_main:
-            print(f"carrt-train: stopped at {exc} (stop_after); run the same command to resume")
-        return 0, False
-    except FloatingPointError as exc:
-        print(
-            f"carrt-train: training diverged: {exc}; the last checkpoint is intact", file=sys.stderr
-        )
-        return 1, False
-    except Interrupted as exc:
-        if dist is None or dist.is_main:
-            print(f"carrt-train: interrupted at {exc}; checkpoint saved, run the same command "
-                  "to resume", file=sys.stderr)  # fmt: skip
-        return 130, False
-    except KeyboardInterrupt:
-        print("carrt-train: interrupted; run the same command to resume from the last checkpoint",
-              file=sys.stderr)  # fmt: skip
-        return 130, False
-    finally:
-        shutdown_distributed()

@@ -1,26 +1,19 @@
-"""The end of an iteration on rank 0: held-out metrics, figures, ONNX export, report.md.
+"""The end of an iteration on rank 0, after its export: held-out metrics, figures, report.md.
 
 report.md is what a person reads before putting the policy on the car: which data, how far
 each stage got, whether the world model beats the trivial baselines on episodes it never saw,
-and whether the export passed its parity check. metrics.json holds the same numbers for tools.
-
-The export runs as its own process, `python -m export` (carrt-export), exactly as a person
-would run it: the arrows run firmware_bridge <- carrt <- training <- export, so training/ never
-imports export/, and the command layer (this end-of-run step) calls it after training.
+and whether the export (training/export_step.py) passed its parity check. metrics.json holds
+the same numbers for tools.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import os
-import subprocess
-import sys
-import tempfile
 from pathlib import Path
 
 from training.evaluate import evaluate
+from training.export_step import Exported
 from training.figures import loss_curves, reveries, uncertainty_vs_error
 
 
@@ -32,37 +25,13 @@ def _fmt(x, digits: int = 4) -> str:
     return str(x)
 
 
-def _export(cfg, out: Path) -> tuple[list[str], dict | None, int]:
-    """(report lines, ExportReport as a dict, exit code): `python -m export` (carrt-export) on
-    policy.pt, in its own process. A missing export/ (or onnx) is not an error."""
-    if not cfg.export:
-        return ["export skipped (export=false)"], None, 0
-    for module in ("export", "onnx"):
-        if importlib.util.find_spec(module) is None:
-            return [f"export skipped: {module} is not available"], None, 0
-    # the child finds export/ where this process does (a checkout run as a script, too)
-    root = str(Path(importlib.util.find_spec("export").origin).parents[1])
-    paths = [root, *filter(None, [os.environ.get("PYTHONPATH")])]
-    with tempfile.TemporaryDirectory() as tmp:
-        info = Path(tmp) / "export.json"
-        argv = [sys.executable, "-m", "export", str(out / "policy.pt"), "-o",
-                str(out / "policy.onnx"), "--episodes", *cfg.episodes,
-                "--json-out", str(info)]  # fmt: skip
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
-        env |= {"OMP_NUM_THREADS": str(cfg.threads)} if cfg.threads else {}
-        done = subprocess.run(argv, capture_output=True, text=True, env=env)
-        if done.returncode != 0 or not info.is_file():  # refused or failed: policy.pt is intact
-            why = (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1]
-            return [f"export FAILED: {' '.join(why.split())}"], None, 1
-        return done.stdout.rstrip("\n").splitlines(), json.loads(info.read_text()), 0
-
-
-def finish_run(
-    cfg, out: Path, *, policy, world_model, norm, train_eps, val_eps, episodes, digest,
-    results, iteration, device, writer=None, world_size=1, world=None, extras=(),
+def report_run(
+    cfg, out: Path, exported: Exported, *, policy, world_model, norm, train_eps, val_eps,
+    episodes, digest, results, iteration, device, writer=None, world_size=1, world=None,
+    extras=(),
 ) -> dict:  # fmt: skip
-    """Metrics, figures, export and report of a finished iteration; `extras` are research
-    variants' report sections (training.iteration.Variants.report)."""
+    """Metrics, figures and report of a finished, exported iteration; `extras` are research
+    variants' report sections (training.iteration.Variants.report), called after the export."""
     from training.data import WindowDataset, placement_key, takeover_labels
 
     held_out = bool(val_eps)
@@ -99,7 +68,6 @@ def finish_run(
                 "Reveries: real future, predicted, uncertainty": "figures/reveries.png",
             }
 
-    export_lines, export_info, exit_code = _export(cfg, out)
     sections: dict[str, tuple] = {}
     for extra in extras:
         found = extra(cfg, out, policy=policy, world_model=world_model, windows=windows,
@@ -132,15 +100,15 @@ def finish_run(
     record = {
         "iteration": iteration, "profile": cfg.profile, "world_size": world_size,
         "device": str(device), "data": data, "stages": stages,
-        "metrics": metrics, "figures": figures, "export": export_info,
+        "metrics": metrics, "figures": figures, "export": exported.info,
         "normalisation": norm.to_dict(),
         **{key: value for key, (value, _lines) in sections.items()},
     }  # fmt: skip
     (out / "metrics.json").write_text(json.dumps(_finite(record), indent=2, default=str) + "\n")
     extra_md = [line for _value, lines in sections.values() for line in lines]
-    (out / "report.md").write_text(render(cfg, record, export_lines, extra_md))
-    lines = [f"wrote {out / 'report.md'}", *export_lines]
-    return {"metrics": metrics, "record": record, "lines": lines, "exit_code": exit_code}
+    (out / "report.md").write_text(render(cfg, record, exported.lines, extra_md))
+    lines = [f"wrote {out / 'report.md'}", *exported.lines]
+    return {"metrics": metrics, "record": record, "lines": lines}
 
 
 def _world_line(w: dict | None) -> list[str]:

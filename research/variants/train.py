@@ -27,9 +27,11 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make `research` and `training` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+from carrt.errors import UserError
 from research.variants.config import ResearchConfig
 from training import iteration
 from training.iteration_args import Parser, add_iteration_args, config_from
+from training.one_run import bad_input, run_iteration
 
 PROG = "research/variants/train.py"
 
@@ -103,7 +105,11 @@ def main(argv: list[str] | None = None) -> int:
     """One run, the world model and refinement on (`dirl`: their steps as the study sets them,
     its policy.* the last stage's), as every study command ran before carrt-train made them
     opt-in (--dirl, into OUT/refined/)."""
-    return iteration.guarded(lambda: research_config(argv), VARIANTS)
+    try:
+        cfg = research_config(argv)
+    except UserError as exc:
+        return bad_input(exc)
+    return run_iteration(cfg, VARIANTS)[0]
 
 
 def research_config(argv: list[str] | None) -> ResearchConfig:
