@@ -28,23 +28,20 @@ from dataclasses import dataclass
 
 from carrt.config import CameraConfig, EncoderConfig
 from carrt.interfaces import JoystickState, Mode
+from carrt.reasons import Why, WhyText
 from firmware_bridge.messages import Reason, State
 from firmware_bridge.timing import BOARD_GRACE_S
 
 """How long the board may lag a clear or an arm before the host stops waiting for it."""
 
-DEFAULT_ESTOP_WHY = "joystick: e-stop button pressed or pad removed"
-SILENT_BOARD_WHY = "board silent: the transmitter is read through it"
 
-
-def arm_hint(controls: Mapping[str, str], allow_auto: bool) -> str:
+def arm_hint(controls: Mapping[str, str], allow_auto: bool) -> WhyText:
     """What a parked car tells its driver, naming the keys of the device in hand (`controls`,
     role → key or button name: the joystick's own `controls`; the role where it has none)."""
     arm = controls.get("arm", "the arm button")
-    hint = f"not armed yet: press {arm} to arm (sticks at neutral)"
     if allow_auto:
-        hint += f", then {controls.get('auto', 'the auto button')} for AUTO"
-    return hint
+        return Why.NOT_ARMED_THEN_AUTO.text(arm=arm, auto=controls.get("auto", "the auto button"))
+    return Why.NOT_ARMED.text(arm=arm)
 
 
 @dataclass(frozen=True)
@@ -75,8 +72,8 @@ class Decision:
     steering: float
     throttle: float
     source: str  # 'neutral' | 'human' | 'policy' | 'plan-fallback'
-    reason: str = ""  # why the command is neutral; '' when someone drives
-    refused: str = ""  # why a button press this tick was refused; '' when none was
+    reason: str = ""  # why the command is neutral (a WhyText); '' when someone drives
+    refused: str = ""  # why a button press this tick was refused (a WhyText); '' when none was
     override: bool = False  # the human took over from the policy this tick (an intervention)
     estop: bool = False  # ESTOP was latched since the previous decision (from any thread)
     arm_request: bool = False  # the loop should ask the board to arm (link.arm)
@@ -92,15 +89,17 @@ def _finite(action: tuple[float, float]) -> bool:
     return all(math.isfinite(float(v)) for v in action)
 
 
-def _failsafe_text(reason: int) -> str:
-    """'board failsafe (link timeout)', or without the parenthesis when the loop gave no reason."""
+def _failsafe(reason: int, held: bool = False) -> WhyText:
+    """'board failsafe (link timeout)', or without the parenthesis when the loop gave no reason;
+    `held`: the parked car's reason, which adds what to do."""
     if not reason:
-        return "board failsafe"
+        return (Why.BOARD_FAILSAFE_HELD if held else Why.BOARD_FAILSAFE).text()
     try:
-        why = Reason(reason).name.lower().replace("_", " ")
+        because = Reason(reason).name.lower().replace("_", " ")
     except ValueError:
-        why = f"reason {reason}"
-    return f"board failsafe ({why})"
+        because = f"reason {reason}"
+    why = Why.BOARD_FAILSAFE_BECAUSE_HELD if held else Why.BOARD_FAILSAFE_BECAUSE
+    return why.text(because=because)
 
 
 class Arbiter:
@@ -129,7 +128,7 @@ class Arbiter:
         self._lock = threading.Lock()
         self._mode = Mode.DISARMED
         self._why = arm_hint(controls or {}, allow_auto)
-        self._estop_reason = ""
+        self._estop_reason: str = ""  # a WhyText while latched
         self._estop_edge = False
         self._interventions = 0
         self._clear_since: float | None = None  # clear sent, board not yet out of its latch
@@ -149,19 +148,23 @@ class Arbiter:
 
     @property
     def estop_reason(self) -> str:
+        """What latched the e-stop (a WhyText), '' when none is latched."""
         return self._estop_reason
 
     # ------------------------------------------------------------------ fast path
-    def estop(self, why: str = DEFAULT_ESTOP_WHY) -> None:
-        """Latch ESTOP now and put it on the wire from the calling thread (once per latch).
+    def estop(self, why: str = Why.PAD_ESTOP.text()) -> None:
+        """Latch ESTOP now and put it on the wire from the calling thread (once per latch);
+        `why` a WhyText, or a caller's own words (kept as Why.SAID_BY_CALLER).
 
         The callback runs under the lock on purpose: a clear cannot slip in between the latch
         and the frame on the wire, so the host and the board never disagree about the latch.
         """
+        if not isinstance(why, WhyText):
+            why = Why.SAID_BY_CALLER.text(words=why)
         with self._lock:
             self._latch(why)
 
-    def _latch(self, why: str) -> None:
+    def _latch(self, why: WhyText) -> None:
         if self._mode == Mode.ESTOP:
             return
         self._mode = Mode.ESTOP
@@ -185,37 +188,40 @@ class Arbiter:
 
         # 0. A rebooted board is disarmed and re-validates its receiver: the car stops as a
         # disarm named by the reboot, not as the "joystick disconnected" that follows from it.
-        if inp.board_rebooted and self._mode in (Mode.MANUAL, Mode.AUTO):
-            disarm = self._disarm(inp.board_rebooted)
-        elif inp.board_rebooted and self._mode == Mode.DISARMED:
-            self._why = inp.board_rebooted
-        self._reboot_why = inp.board_rebooted or self._reboot_why
+        rebooted = inp.board_rebooted and Why.BOARD_REBOOTED.text(line=inp.board_rebooted)
+        if rebooted and self._mode in (Mode.MANUAL, Mode.AUTO):
+            disarm = self._disarm(rebooted)
+        elif rebooted and self._mode == Mode.DISARMED:
+            self._why = rebooted
+        self._reboot_why = rebooted or self._reboot_why
 
         # 1. Everything that latches ESTOP.
         if ev.estop:
-            self._latch("e-stop button")
+            self._latch(Why.ESTOP_BUTTON.text())
         if not js.connected and self._mode in (Mode.MANUAL, Mode.AUTO):
             if js.through_board and inp.telemetry_age_s > self.max_telemetry_age_s:
                 # the transmitter is read through a board that stopped talking: the board's
                 # watchdog stops the car; the host follows it down (a reboot is then named)
-                disarm = self._disarm(SILENT_BOARD_WHY)
+                disarm = self._disarm(Why.BOARD_SILENT.text())
             else:  # the person's controls are gone: named as the part that went
-                self._latch("receiver lost" if js.through_board else "joystick disconnected")
+                gone = Why.RECEIVER_LOST if js.through_board else Why.JOYSTICK_DISCONNECTED
+                self._latch(gone.text())
         if inp.camera_lost and self._mode == Mode.AUTO:
-            why = inp.camera_lost_reason
-            self._latch(f"camera lost ({why})" if why else "camera lost")
+            because = inp.camera_lost_reason
+            lost = Why.CAMERA_LOST_BECAUSE.text(because=because) if because else None
+            self._latch(lost or Why.CAMERA_LOST.text())
         if board == State.ESTOP:
             if self._clear_since is None:
-                self._latch("the board reports e-stop")
+                self._latch(Why.BOARD_ESTOP.text())
             elif inp.now - self._clear_since > BOARD_GRACE_S:
-                self._latch("the board did not leave e-stop after a clear")
+                self._latch(Why.BOARD_KEPT_ESTOP.text())
         if self._clear_since is not None and board not in (State.ESTOP, State.FAILSAFE):
             self._clear_since = None
 
         # 2. Follow the board down when it stopped listening to us.
         if self._mode in (Mode.MANUAL, Mode.AUTO):
             if board == State.FAILSAFE:
-                disarm = self._disarm(_failsafe_text(inp.board_reason))
+                disarm = self._disarm(_failsafe(inp.board_reason))
             elif board == State.ARMED:
                 self._board_armed_seen = True
             elif board == State.DISARMED and (
@@ -223,39 +229,34 @@ class Arbiter:
                 or self._armed_since is None
                 or inp.now - self._armed_since > BOARD_GRACE_S
             ):
-                disarm = self._disarm(
-                    "the board disarmed" if self._board_armed_seen else "the board did not arm"
-                )
+                went = Why.BOARD_DISARMED if self._board_armed_seen else Why.BOARD_DID_NOT_ARM
+                disarm = self._disarm(went.text())
 
         # 3. Button edges.
         if self._mode == Mode.ESTOP:
             if ev.clear and not ev.estop:
                 refused, clear = self._clear(js, moved, inp.now)
             if ev.arm and not refused:
-                refused = (
-                    "arm refused: arming is a separate press after the clear"
-                    if clear
-                    else "arm refused: e-stop is latched: clear first"
-                )
+                refused = (Why.ARM_AFTER_CLEAR if clear else Why.ARM_WHILE_LATCHED).text()
         elif self._mode == Mode.DISARMED:
             if ev.clear:
                 if board in (State.ESTOP, State.FAILSAFE):
                     refused, clear = self._clear(js, moved, inp.now)
                 else:
-                    refused = "clear: nothing to clear"
+                    refused = Why.NOTHING_TO_CLEAR.text()
             if ev.arm:
                 refusal = self._arm_refusal(js, moved, board)
                 if refusal:
-                    refused = f"arm refused: {refusal}"
+                    refused = refusal
                 else:
                     self._mode = Mode.MANUAL
                     self._armed_since, self._board_armed_seen = inp.now, False
                     self._reboot_why = ""
                     arm = True
             elif ev.toggle_auto:
-                refused = "auto refused: arm first"
+                refused = Why.AUTO_BEFORE_ARM.text()
         elif ev.arm:
-            disarm = self._disarm("disarmed by the human")
+            disarm = self._disarm(Why.DISARMED_BY_HUMAN.text())
         elif self._mode == Mode.AUTO and (moved or inp.board_takeover):
             self._mode = Mode.MANUAL
             self._interventions += 1
@@ -266,7 +267,7 @@ class Arbiter:
             else:
                 refusal = self._auto_refusal(inp, moved)
                 if refusal:
-                    refused = f"auto refused: {refusal}"
+                    refused = refusal
                 else:
                     self._mode = Mode.AUTO
                     self._fallback_used = False
@@ -292,7 +293,7 @@ class Arbiter:
     def _moved(self, js: JoystickState) -> bool:
         return abs(js.steering) > self.deadzone or abs(js.throttle) > self.deadzone
 
-    def _disarm(self, why: str) -> bool:
+    def _disarm(self, why: WhyText) -> bool:
         self._mode = Mode.DISARMED
         self._why = why
         self._armed_since = None
@@ -300,87 +301,84 @@ class Arbiter:
 
     def _clear(self, js: JoystickState, moved: bool, now: float) -> tuple[str, bool]:
         if not js.connected:
-            return "clear refused: no joystick connected", False
+            return Why.CLEAR_NO_JOYSTICK.text(), False
         if moved:
-            return "clear refused: sticks not at neutral", False
+            return Why.CLEAR_STICKS_OUT.text(), False
         self._mode = Mode.DISARMED
-        self._why = "cleared: arm when ready"
+        self._why = Why.CLEARED.text()
         self._estop_reason = ""
         self._clear_since = now
         return "", True
 
     def _arm_refusal(self, js: JoystickState, moved: bool, board: State) -> str:
         if not js.connected:
-            return "no joystick connected"
+            return Why.ARM_NO_JOYSTICK.text()
         if not js.neutral_since_connect:
-            return "the pad has not reported neutral sticks since it connected: move them"
+            return Why.ARM_PAD_NEVER_NEUTRAL.text()
         if moved:
-            return "sticks not at neutral"
+            return Why.ARM_STICKS_OUT.text()
         if self._clear_since is not None:
-            return "waiting for the board to leave its e-stop/failsafe"
+            return Why.ARM_BOARD_CATCHING_UP.text()
         if board in (State.ESTOP, State.FAILSAFE):
-            return f"the board is in {board.name.lower()}: clear first"
+            return Why.ARM_BOARD_LATCHED.text(state=board.name.lower())
         return ""
 
     def _auto_refusal(self, inp: ArbiterInputs, moved: bool) -> str:
         if not self.allow_auto:
-            return "not available in this mode (teleop)"
+            return Why.AUTO_IN_TELEOP.text()
         if moved:
-            return "release the sticks first"
-        stale = self._staleness(inp)
-        if stale:
-            return stale
-        return ""
+            return Why.AUTO_STICKS_OUT.text()
+        return self._staleness(inp, refusal=True)
 
-    def _staleness(self, inp: ArbiterInputs, measured: bool = True) -> str:
+    def _staleness(self, inp: ArbiterInputs, refusal: bool = False) -> str:
         """Why AUTO cannot drive now; '' when it can. A refusal (one per press) says how old;
-        the neutral reason of a tick (`measured=False`) names only the limit, so it stays the
-        same tick after tick and the person is told once (the loop's fault line has the age)."""
+        the neutral reason of a tick names only the limit, so it stays the same tick after tick
+        and the person is told once (the loop's fault line has the age)."""
         if inp.camera_lost:
-            return "camera lost"
+            return (Why.AUTO_CAMERA_LOST if refusal else Why.CAMERA_LOST).text()
         if inp.frame_age_s is None:
-            return "no camera frame yet"
+            return (Why.AUTO_NO_FRAME if refusal else Why.NO_FRAME).text()
         if inp.frame_age_s > self.max_frame_age_s:
-            if measured:
-                return f"camera frame {inp.frame_age_s * 1000:.0f} ms old"
-            return f"camera frame older than {self.max_frame_age_s * 1000:.0f} ms"
+            if refusal:
+                return Why.AUTO_FRAME_OLD.text(age_ms=inp.frame_age_s * 1000)
+            return Why.FRAME_OLDER_THAN.text(limit_ms=self.max_frame_age_s * 1000)
         if inp.telemetry_age_s > self.max_telemetry_age_s:
             if math.isinf(inp.telemetry_age_s):
-                return "no telemetry from the board yet"
-            if measured:
-                return f"telemetry {inp.telemetry_age_s * 1000:.0f} ms old"
-            return f"telemetry older than {self.max_telemetry_age_s * 1000:.0f} ms"
+                return (Why.AUTO_NO_TELEMETRY if refusal else Why.NO_TELEMETRY).text()
+            if refusal:
+                return Why.AUTO_TELEMETRY_OLD.text(age_ms=inp.telemetry_age_s * 1000)
+            return Why.TELEMETRY_OLDER_THAN.text(limit_ms=self.max_telemetry_age_s * 1000)
         return ""
 
     def _command(self, inp: ArbiterInputs, board: State) -> tuple[float, float, str, str]:
         if self._mode == Mode.ESTOP:
-            return 0.0, 0.0, "neutral", f"e-stop: {self._estop_reason}"
+            return 0.0, 0.0, "neutral", Why.ESTOP.text(because=self._estop_reason)
         if self._mode == Mode.DISARMED:
             if self._reboot_why:  # its receiver re-validating is part of it, not news
                 return 0.0, 0.0, "neutral", self._reboot_why
             if not inp.joystick.connected:
                 silent = inp.telemetry_age_s > self.max_telemetry_age_s
                 if inp.joystick.through_board and silent:
-                    return 0.0, 0.0, "neutral", SILENT_BOARD_WHY
-                return 0.0, 0.0, "neutral", "no joystick connected"
+                    return 0.0, 0.0, "neutral", Why.BOARD_SILENT.text()
+                return 0.0, 0.0, "neutral", Why.NO_JOYSTICK.text()
             if board == State.FAILSAFE and self._clear_since is None:
-                return 0.0, 0.0, "neutral", f"{_failsafe_text(inp.board_reason)}: clear, then arm"
+                return 0.0, 0.0, "neutral", _failsafe(inp.board_reason, held=True)
             return 0.0, 0.0, "neutral", self._why
         if self._mode == Mode.MANUAL:
             return inp.joystick.steering, inp.joystick.throttle, "human", ""
-        stale = self._staleness(inp, measured=False)
+        stale = self._staleness(inp)
         if stale:
             return 0.0, 0.0, "neutral", stale
         if inp.plan_action is not None:
             self._fallback_used = False
             if not _finite(inp.plan_action):
-                return 0.0, 0.0, "neutral", "policy output is not finite"
+                return 0.0, 0.0, "neutral", Why.POLICY_NOT_FINITE.text()
             return inp.plan_action[0], inp.plan_action[1], "policy", ""
         if inp.fallback_action is not None and not self._fallback_used:
             self._fallback_used = True
             if not _finite(inp.fallback_action):
-                return 0.0, 0.0, "neutral", "policy output is not finite"
+                return 0.0, 0.0, "neutral", Why.POLICY_NOT_FINITE.text()
             return inp.fallback_action[0], inp.fallback_action[1], "plan-fallback", ""
         if inp.fallback_action is not None:
-            return 0.0, 0.0, "neutral", "no plan: the previous plan's next step was used already"
-        return 0.0, 0.0, "neutral", "no plan this tick"
+            return 0.0, 0.0, "neutral", Why.PLAN_USED_ALREADY.text()
+        return 0.0, 0.0, "neutral", Why.NO_PLAN.text()

@@ -44,6 +44,7 @@ from carrt.laps import LapCounter
 from carrt.loop_summary import SECTIONS, LoopSummary, percentiles
 from carrt.noise import NoiseInjector
 from carrt.plan import PlanBuffer
+from carrt.reasons import Why
 from carrt.speed import SpeedEstimator
 from carrt.tick import Tick
 from firmware_bridge import messages as m
@@ -189,7 +190,7 @@ class ControlLoop:
         tick.telemetry = parts.link.telemetry
         tick.collided = parts.collisions() if parts.collisions is not None else False
         if tick.collided:
-            self.arbiter.estop("collision")
+            self.arbiter.estop(Why.COLLISION.text())
             self._collision_ended = True
             self.summary.collisions += 1
         sections.lap("capture")

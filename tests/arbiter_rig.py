@@ -11,10 +11,16 @@ import threading
 from carrt.arbitration import Arbiter, ArbiterInputs, Decision
 from carrt.config import CameraConfig, EncoderConfig
 from carrt.interfaces import JoystickEvents, JoystickState, Mode
+from carrt.reasons import Why
 from firmware_bridge.messages import State
 
 CAMERA = CameraConfig(max_age_s=0.15)
 ENCODER = EncoderConfig(max_age_s=0.1)
+
+
+def why(reason: str) -> Why | None:
+    """Which reason the arbiter gave (carrt/reasons.py), None for '' or a caller's own words."""
+    return getattr(reason, "why", None)
 
 
 def pad(steering=0.0, throttle=0.0, *, connected=True, neutral=True, **edges) -> JoystickState:

@@ -13,10 +13,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from arbiter_rig import Rig, pad
+from arbiter_rig import Rig, pad, why
 
 from carrt.arbitration import ArbiterInputs
 from carrt.interfaces import Mode
+from carrt.reasons import Why
 from firmware_bridge.messages import State
 
 
@@ -25,7 +26,7 @@ def test_starts_disarmed_and_neutral():
     rig = Rig()
     d = rig.tick(pad(0.5, 0.5))
     assert (d.mode, d.steering, d.throttle, d.source) == (Mode.DISARMED, 0.0, 0.0, "neutral")
-    assert d.reason and not d.arm_request
+    assert why(d.reason) is Why.NOT_ARMED_THEN_AUTO and not d.arm_request
 
 
 def test_arm_gives_manual_with_the_human_sticks():
@@ -37,26 +38,28 @@ def test_arm_gives_manual_with_the_human_sticks():
 
 
 @pytest.mark.parametrize(
-    ("js", "board", "words"),
+    ("js", "board", "reason"),
     [
-        (pad(connected=False, arm=True), State.DISARMED, "no joystick"),
-        (pad(neutral=False, arm=True), State.DISARMED, "neutral"),
-        (pad(0.0, 0.3, arm=True), State.DISARMED, "sticks not at neutral"),
-        (pad(0.2, 0.0, arm=True), State.DISARMED, "sticks not at neutral"),
-        (pad(arm=True), State.FAILSAFE, "clear first"),
+        (pad(connected=False, arm=True), State.DISARMED, Why.ARM_NO_JOYSTICK),
+        (pad(neutral=False, arm=True), State.DISARMED, Why.ARM_PAD_NEVER_NEUTRAL),
+        (pad(0.0, 0.3, arm=True), State.DISARMED, Why.ARM_STICKS_OUT),
+        (pad(0.2, 0.0, arm=True), State.DISARMED, Why.ARM_STICKS_OUT),
+        (pad(arm=True), State.FAILSAFE, Why.ARM_BOARD_LATCHED),
     ],
 )
-def test_arming_refused_with_a_reason(js, board, words):
+def test_arming_refused_with_a_reason(js, board, reason):
     rig = Rig()
     d = rig.tick(js, board_state=board)
     assert d.mode == Mode.DISARMED and not d.arm_request
-    assert words in d.refused
+    assert why(d.refused) is reason
     assert (d.steering, d.throttle) == (0.0, 0.0)
 
 
 def test_stuck_axis_after_reconnect_cannot_arm_until_moved_back():
     rig = Rig()
-    assert "neutral" in rig.tick(pad(0.0, 1.0, neutral=False, arm=True)).refused
+    assert (
+        why(rig.tick(pad(0.0, 1.0, neutral=False, arm=True)).refused) is Why.ARM_PAD_NEVER_NEUTRAL
+    )
     assert rig.tick(pad(arm=True)).mode == Mode.MANUAL  # pad reported neutral: now it may
 
 
@@ -81,31 +84,32 @@ def test_teleop_never_enters_auto():
     rig = Rig(allow_auto=False)
     rig.arm()
     d = rig.tick(pad(toggle_auto=True), plan_action=(0.1, 0.1))
-    assert d.mode == Mode.MANUAL and "teleop" in d.refused
+    assert d.mode == Mode.MANUAL and why(d.refused) is Why.AUTO_IN_TELEOP
 
 
 @pytest.mark.parametrize(
-    ("fields", "words"),
+    ("fields", "reason", "measured"),
     [
-        ({"frame_age_s": None}, "no camera frame"),
-        ({"frame_age_s": 0.2}, "camera frame 200 ms old"),
-        ({"telemetry_age_s": 0.15}, "telemetry 150 ms old"),
-        ({"telemetry_age_s": math.inf}, "no telemetry"),
-        ({"camera_lost": True}, "camera lost"),
+        ({"frame_age_s": None}, Why.AUTO_NO_FRAME, {}),
+        ({"frame_age_s": 0.2}, Why.AUTO_FRAME_OLD, {"age_ms": 200}),
+        ({"telemetry_age_s": 0.15}, Why.AUTO_TELEMETRY_OLD, {"age_ms": 150}),
+        ({"telemetry_age_s": math.inf}, Why.AUTO_NO_TELEMETRY, {}),
+        ({"camera_lost": True}, Why.AUTO_CAMERA_LOST, {}),
     ],
 )
-def test_auto_needs_a_fresh_frame_and_fresh_telemetry(fields, words):
+def test_auto_needs_a_fresh_frame_and_fresh_telemetry(fields, reason, measured):
     rig = Rig()
     rig.arm()
     d = rig.tick(pad(toggle_auto=True), **fields)
-    assert d.mode == Mode.MANUAL and words in d.refused
+    assert d.mode == Mode.MANUAL and why(d.refused) is reason
+    assert d.refused == reason.text(**measured)  # a refusal says how old
 
 
 def test_auto_refused_with_sticks_out_and_before_arming():
     rig = Rig()
-    assert "arm first" in rig.tick(pad(toggle_auto=True)).refused
+    assert why(rig.tick(pad(toggle_auto=True)).refused) is Why.AUTO_BEFORE_ARM
     rig.arm()
-    assert "release the sticks" in rig.tick(pad(0.5, 0.0, toggle_auto=True)).refused
+    assert why(rig.tick(pad(0.5, 0.0, toggle_auto=True)).refused) is Why.AUTO_STICKS_OUT
 
 
 def test_auto_drives_the_plan_and_toggle_returns_to_manual():
@@ -144,20 +148,20 @@ def test_override_respects_the_deadzone_margin():
 
 
 @pytest.mark.parametrize(
-    ("fields", "words"),
+    ("fields", "reason", "measured"),
     [
-        ({"frame_age_s": None}, "no camera frame"),
-        ({"frame_age_s": 0.16}, "camera frame older than 150 ms"),
-        ({"frame_age_s": 0.9}, "camera frame older than 150 ms"),  # the same words: said once
-        ({"telemetry_age_s": 0.11}, "telemetry older than 100 ms"),
+        ({"frame_age_s": None}, Why.NO_FRAME, {}),
+        ({"frame_age_s": 0.16}, Why.FRAME_OLDER_THAN, {"limit_ms": 150}),
+        ({"frame_age_s": 0.9}, Why.FRAME_OLDER_THAN, {"limit_ms": 150}),  # the same: said once
+        ({"telemetry_age_s": 0.11}, Why.TELEMETRY_OLDER_THAN, {"limit_ms": 100}),
     ],
 )
-def test_stale_inputs_in_auto_give_neutral_with_a_reason(fields, words):
+def test_stale_inputs_in_auto_give_neutral_with_a_reason(fields, reason, measured):
     rig = Rig()
     rig.auto()
     d = rig.tick(plan_action=(0.5, 0.5), **fields)
     assert d.mode == Mode.AUTO and (d.steering, d.throttle, d.source) == (0.0, 0.0, "neutral")
-    assert words in d.reason
+    assert why(d.reason) is reason and d.reason == reason.text(**measured)
     d = rig.tick(plan_action=(0.5, 0.5))
     assert d.source == "policy" and d.reason == ""
 
@@ -175,9 +179,9 @@ def test_fallback_used_once_per_missing_plan():
     d = rig.tick(plan_action=None, fallback_action=(0.3, 0.6))
     assert (d.source, d.steering, d.throttle) == ("plan-fallback", 0.3, 0.6)
     d = rig.tick(plan_action=None, fallback_action=(0.35, 0.6))  # loop offers it again: no
-    assert d.source == "neutral" and "used already" in d.reason
+    assert d.source == "neutral" and why(d.reason) is Why.PLAN_USED_ALREADY
     d = rig.tick(plan_action=None, fallback_action=None)
-    assert d.source == "neutral" and d.reason == "no plan this tick"
+    assert d.source == "neutral" and why(d.reason) is Why.NO_PLAN
     assert rig.tick(plan_action=(0.1, 0.2)).source == "policy"
     d = rig.tick(plan_action=None, fallback_action=(0.2, 0.2))  # a new plan re-arms the fallback
     assert d.source == "plan-fallback"
@@ -190,7 +194,7 @@ def test_policy_outputs_are_clamped_and_nan_is_neutral():
     assert (d.steering, d.throttle) == (1.0, -1.0)
     d = rig.tick(plan_action=(float("nan"), 0.5))
     assert (d.steering, d.throttle, d.source) == (0.0, 0.0, "neutral")
-    assert "finite" in d.reason
+    assert why(d.reason) is Why.POLICY_NOT_FINITE
 
 
 def test_human_outputs_are_clamped():
@@ -230,3 +234,17 @@ def test_a_braking_policy_reaches_the_board_command_negative(tmp_path):
     d = rig.tick(plan_action=(float(mu[0, 0]), float(mu[0, 1])))
     assert d.source == "policy" and d.throttle == pytest.approx(-0.6)
     assert _to_fixed(d.throttle) == -round(0.6 * SCALE)
+
+
+def test_a_reason_is_its_words_and_its_name():
+    """What the person reads is the member's text, unchanged through an f-string (the log
+    line), JSON (the live view) and pickle (a copy in another process); code compares the name."""
+    import json
+    import pickle
+
+    reason = Why.AUTO_FRAME_OLD.text(age_ms=212.4)
+    assert reason == "auto refused: camera frame 212 ms old" and f"{reason}" == reason
+    assert json.loads(json.dumps({"why": reason})) == {"why": str(reason)}
+    again = pickle.loads(pickle.dumps(reason))
+    assert again == reason and why(again) is Why.AUTO_FRAME_OLD
+    assert Why.NO_PLAN.text() is Why.NO_PLAN.text(), "a fixed reason is made once"

@@ -13,10 +13,11 @@ import threading
 from dataclasses import replace
 
 import pytest
-from arbiter_rig import Rig, pad
+from arbiter_rig import Rig, pad, why
 
 from carrt.arbitration import BOARD_GRACE_S, Decision
 from carrt.interfaces import Mode
+from carrt.reasons import Why
 from firmware_bridge.messages import Reason, State
 
 
@@ -26,7 +27,7 @@ def test_estop_button_latches_and_survives_everything_but_clear():
     rig.arm()
     d = rig.tick(pad(0.5, 0.5, estop=True))
     assert d.mode == Mode.ESTOP and d.estop and (d.steering, d.throttle) == (0.0, 0.0)
-    assert rig.estops == ["MainThread"] and "e-stop button" in rig.arbiter.estop_reason
+    assert rig.estops == ["MainThread"] and why(rig.arbiter.estop_reason) is Why.ESTOP_BUTTON
     rig.board = State.ESTOP
     for js in (
         pad(arm=True),
@@ -46,14 +47,17 @@ def test_estop_button_latches_and_survives_everything_but_clear():
 
 
 @pytest.mark.parametrize(
-    ("js", "words"),
-    [(pad(connected=False, clear=True), "no joystick"), (pad(0.0, 0.4, clear=True), "neutral")],
+    ("js", "reason"),
+    [
+        (pad(connected=False, clear=True), Why.CLEAR_NO_JOYSTICK),
+        (pad(0.0, 0.4, clear=True), Why.CLEAR_STICKS_OUT),
+    ],
 )
-def test_clear_refused_without_a_pad_or_with_sticks_out(js, words):
+def test_clear_refused_without_a_pad_or_with_sticks_out(js, reason):
     rig = Rig()
     rig.arbiter.estop("test")
     d = rig.tick(js)
-    assert d.mode == Mode.ESTOP and not d.clear_request and words in d.refused
+    assert d.mode == Mode.ESTOP and not d.clear_request and why(d.refused) is reason
 
 
 def test_clear_then_a_separate_arm_never_straight_to_driving():
@@ -62,12 +66,12 @@ def test_clear_then_a_separate_arm_never_straight_to_driving():
     rig.tick(pad(estop=True))
     rig.board = State.ESTOP
     d = rig.tick(pad(arm=True))
-    assert d.mode == Mode.ESTOP and "clear first" in d.refused
+    assert d.mode == Mode.ESTOP and why(d.refused) is Why.ARM_WHILE_LATCHED
     d = rig.tick(pad(clear=True, arm=True))
     assert d.mode == Mode.DISARMED and d.clear_request and not d.arm_request
-    assert "separate press" in d.refused
+    assert why(d.refused) is Why.ARM_AFTER_CLEAR
     d = rig.tick(pad(arm=True))  # telemetry has not caught up with the clear yet
-    assert d.mode == Mode.DISARMED and "waiting for the board" in d.refused
+    assert d.mode == Mode.DISARMED and why(d.refused) is Why.ARM_BOARD_CATCHING_UP
     rig.board = State.DISARMED
     assert rig.tick(pad(arm=True)).mode == Mode.MANUAL
 
@@ -82,7 +86,7 @@ def test_board_still_in_estop_long_after_a_clear_relatches():
         ticks += 1
         assert ticks < 100
     assert ticks * 0.1 == pytest.approx(BOARD_GRACE_S, abs=0.15)
-    assert "did not leave e-stop" in rig.arbiter.estop_reason
+    assert why(rig.arbiter.estop_reason) is Why.BOARD_KEPT_ESTOP
     assert len(rig.estops) == 2
 
 
@@ -92,13 +96,14 @@ def test_joystick_disconnected_while_driving_estops():
         rig.auto() if mode == "auto" else rig.arm()
         d = rig.tick(pad(connected=False), plan_action=(0.2, 0.2))
         assert d.mode == Mode.ESTOP and d.estop
-        assert rig.arbiter.estop_reason == "joystick disconnected" and len(rig.estops) == 1
+        assert why(rig.arbiter.estop_reason) is Why.JOYSTICK_DISCONNECTED
+        assert len(rig.estops) == 1
 
 
 def test_no_pad_at_start_is_disarmed_not_estop():
     rig = Rig()
     d = rig.tick(pad(connected=False, neutral=False))
-    assert d.mode == Mode.DISARMED and d.reason == "no joystick connected"
+    assert d.mode == Mode.DISARMED and why(d.reason) is Why.NO_JOYSTICK
     assert rig.estops == []
 
 
@@ -106,7 +111,7 @@ def test_board_estop_latches_host_estop():
     rig = Rig()
     rig.arm()
     d = rig.tick(pad(0.3, 0.3), board_state=State.ESTOP)
-    assert d.mode == Mode.ESTOP and "board" in rig.arbiter.estop_reason and rig.estops
+    assert d.mode == Mode.ESTOP and why(rig.arbiter.estop_reason) is Why.BOARD_ESTOP and rig.estops
 
 
 def test_camera_lost_estops_in_auto_only():
@@ -116,7 +121,7 @@ def test_camera_lost_estops_in_auto_only():
     rig = Rig()
     rig.auto()
     d = rig.tick(camera_lost=True, plan_action=(0.2, 0.2))
-    assert d.mode == Mode.ESTOP and rig.arbiter.estop_reason == "camera lost"
+    assert d.mode == Mode.ESTOP and why(rig.arbiter.estop_reason) is Why.CAMERA_LOST
 
 
 # ----------------------------------------------------------------------------- the board
@@ -125,10 +130,12 @@ def test_board_failsafe_disarms_with_its_reason_and_needs_clear_then_arm():
     rig.auto()
     rig.board = State.FAILSAFE
     d = rig.tick(plan_action=(0.3, 0.3), board_reason=Reason.LINK_TIMEOUT)
-    assert d.mode == Mode.DISARMED and d.disarm_request and "link timeout" in d.reason
+    assert d.mode == Mode.DISARMED and d.disarm_request
+    assert why(d.reason) is Why.BOARD_FAILSAFE_BECAUSE_HELD
+    assert d.reason == Why.BOARD_FAILSAFE_BECAUSE_HELD.text(because="link timeout")
     assert rig.estops == []
     d = rig.tick(pad(arm=True), board_reason=Reason.LINK_TIMEOUT)
-    assert d.mode == Mode.DISARMED and "clear first" in d.refused
+    assert d.mode == Mode.DISARMED and why(d.refused) is Why.ARM_BOARD_LATCHED
     d = rig.tick(pad(clear=True))
     assert d.clear_request and d.mode == Mode.DISARMED
     rig.board = State.DISARMED
@@ -139,13 +146,13 @@ def test_board_failsafe_without_a_reason_from_the_loop():
     rig = Rig()
     rig.arm()
     d = rig.tick(board_state=State.FAILSAFE)
-    assert d.mode == Mode.DISARMED and d.reason == "board failsafe: clear, then arm"
+    assert d.mode == Mode.DISARMED and why(d.reason) is Why.BOARD_FAILSAFE_HELD
 
 
 def test_clear_when_nothing_is_latched_is_refused():
     rig = Rig()
     d = rig.tick(pad(clear=True))
-    assert not d.clear_request and "nothing to clear" in d.refused
+    assert not d.clear_request and why(d.refused) is Why.NOTHING_TO_CLEAR
 
 
 def test_board_that_never_arms_or_disarms_later_takes_the_host_down():
@@ -153,12 +160,12 @@ def test_board_that_never_arms_or_disarms_later_takes_the_host_down():
     assert rig.tick(pad(arm=True)).mode == Mode.MANUAL  # board stays DISARMED (refused)
     modes = [rig.tick().mode for _ in range(15)]
     assert modes[0] == Mode.MANUAL and modes[-1] == Mode.DISARMED
-    assert "did not arm" in rig.tick().reason
+    assert why(rig.tick().reason) is Why.BOARD_DID_NOT_ARM
     rig = Rig()
     rig.arm()
     rig.tick()
     d = rig.tick(board_state=State.DISARMED)  # e.g. the board rebooted
-    assert d.mode == Mode.DISARMED and d.disarm_request and "board disarmed" in d.reason
+    assert d.mode == Mode.DISARMED and d.disarm_request and why(d.reason) is Why.BOARD_DISARMED
 
 
 # ----------------------------------------------------------------------------- threads
@@ -206,7 +213,7 @@ def test_estop_fast_path_then_button_edge_is_one_latch():
     assert rig.arbiter.mode == Mode.ESTOP and len(rig.estops) == 1
     d = rig.tick(pad(estop=True))
     assert d.estop and d.mode == Mode.ESTOP and len(rig.estops) == 1
-    assert "joystick" in rig.arbiter.estop_reason
+    assert why(rig.arbiter.estop_reason) is Why.PAD_ESTOP
     rig.tick(pad(clear=True))
     rig.arbiter.estop("again")
     assert len(rig.estops) == 2  # a new latch after a clear calls through again
@@ -222,13 +229,14 @@ def test_a_reboot_disarms_with_its_line_and_keeps_it_until_the_next_arm():
     gone = replace(pad(), connected=False, through_board=True)  # its receiver re-validating
     d = rig.tick(gone, board_rebooted=REBOOTED, board_state=State.DISARMED)
     assert (d.mode, d.disarm_request, d.reason) == (Mode.DISARMED, True, REBOOTED)
+    assert why(d.reason) is Why.BOARD_REBOOTED
     assert (d.steering, d.throttle) == (0.0, 0.0)
     d = rig.tick(gone, board_state=State.DISARMED)
     assert d.mode == Mode.DISARMED and d.reason == REBOOTED, "not 'no joystick connected'"
     rig.board = State.DISARMED
     assert rig.tick(pad(arm=True)).mode == Mode.MANUAL
     rig.tick(pad(arm=True))  # disarmed by the person: the reboot is no longer the reason
-    assert REBOOTED not in rig.tick(pad()).reason
+    assert why(rig.tick(pad()).reason) is Why.DISARMED_BY_HUMAN
 
 
 def test_controls_read_through_a_silent_board_disarm_and_a_pulled_pad_estops():
@@ -236,11 +244,11 @@ def test_controls_read_through_a_silent_board_disarm_and_a_pulled_pad_estops():
     rig.auto()
     through = replace(pad(), connected=False, through_board=True)
     d = rig.tick(through, telemetry_age_s=0.3)
-    assert d.mode == Mode.DISARMED and "board silent" in d.reason
+    assert d.mode == Mode.DISARMED and why(d.reason) is Why.BOARD_SILENT
     rig = Rig()
     rig.auto()
     d = rig.tick(through, telemetry_age_s=0.01)  # the board talks: the receiver itself is gone
-    assert d.mode == Mode.ESTOP and rig.arbiter.estop_reason == "receiver lost"
+    assert d.mode == Mode.ESTOP and why(rig.arbiter.estop_reason) is Why.RECEIVER_LOST
     rig = Rig()
     rig.auto()
     d = rig.tick(pad(connected=False), telemetry_age_s=0.3)  # a pad: the dead-man, always

@@ -14,6 +14,7 @@ from carrt.cli import main
 from carrt.config import CarConfig
 from carrt.joystick import PygameJoystick
 from carrt.loop import ControlLoop, LoopParts
+from carrt.reasons import Why
 from carrt.sim.keyboard import CONTROLS, KeyboardPad
 from carrt.sim.metrics import SimMetrics, format_metrics
 from firmware_bridge.link_types import LinkCounters
@@ -55,8 +56,10 @@ def parked_reason(controls, *, allow_auto=True) -> str:
 def test_the_keyboard_window_names_its_keys_for_arm_and_auto():
     assert KeyboardPad.controls is CONTROLS
     reason = parked_reason(CONTROLS)
+    assert reason.why is Why.NOT_ARMED_THEN_AUTO
     assert reason == "not armed yet: press Enter to arm (sticks at neutral), then Tab for AUTO"
-    assert "Tab" not in parked_reason(CONTROLS, allow_auto=False), "teleop has no AUTO"
+    teleop = parked_reason(CONTROLS, allow_auto=False)
+    assert teleop.why is Why.NOT_ARMED and "Tab" not in teleop, "teleop has no AUTO"
 
 
 @pytest.mark.parametrize(

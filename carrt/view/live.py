@@ -22,11 +22,12 @@ from typing import Any
 import numpy as np
 
 from carrt.interfaces import LiveStatus
+from carrt.reasons import Why
 from carrt.view.server import Response, Route, json_response, page
 from firmware_bridge.timing import CONTROL_PERIOD_S
 
 JPEG_QUALITY = 85
-ESTOP_WHY = "browser view"
+ESTOP_WHY = Why.BROWSER.text()  # what the e-stop says latched it
 LONG_POLL_S = 1.0  # `state.json?after=N` waits at most this long for tick N+1
 WAIT_STEP_S = 0.002  # how often a tick that is later than due is looked for
 DUE_MARGIN_S = 0.003  # looked for this long after it is due
