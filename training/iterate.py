@@ -52,7 +52,6 @@ import argparse
 import dataclasses
 import os
 import sys
-from collections.abc import Callable
 from pathlib import Path
 
 if __package__ in (None, ""):  # run as a script (demo_policy, torchrun): make `training` importable
@@ -255,14 +254,21 @@ def loop(a: argparse.Namespace, cfg: IterateConfig) -> int:
             cfg, out=str(here), episodes=tuple(data), init=str(previous) if previous else None
         )
         what = "imitation" if previous is None else f"take-over round {k}: imitation again"
-        finished, code = train(imitation_config(iteration), what)
-        if not finished:
-            return code
+        runs = [(imitation_config(iteration), what)]
         if a.dirl:
-            finished, code = train(dirl_config(iteration), "world model → refinement (--dirl)",
-                                   after=lambda it=iteration: describe_refinement(it))  # fmt: skip
-            if not finished:
+            runs.append((dirl_config(iteration), "world model → refinement (--dirl)"))
+        for run, what in runs:  # each skipped once finished; a stopped one resumes
+            folder = Path(run.out)
+            if (folder / DONE).is_file():
+                print(f"carrt-train: {folder}: {what} (done)")
+                continue
+            print(f"carrt-train: {folder}: {what}", flush=True)
+            code, finished = run_iteration(run)
+            if not (finished and (folder / "policy.onnx").is_file()):
                 return code
+            if run.dirl:
+                describe_refinement(iteration)
+            (folder / DONE).touch()
         compare(a, here, previous, k)
         previous = here
     last = out / f"iter_{a.iterations}"
@@ -270,24 +276,6 @@ def loop(a: argparse.Namespace, cfg: IterateConfig) -> int:
           f"report: {last / 'report.md'}. Run again with --iterations {a.iterations + 1} to "
           "go on.")  # fmt: skip
     return 0
-
-
-def train(cfg: IterateConfig, what: str, after: Callable[[], None] | None = None):
-    """One run into cfg.out (training/one_run.py), skipped when it already finished; a
-    stopped one resumes from its checkpoints; `after` runs once it finishes, before its
-    marker. (finished, exit status)."""
-    folder = Path(cfg.out)
-    if (folder / DONE).is_file():
-        print(f"carrt-train: {folder}: {what} (done)")
-        return True, 0
-    print(f"carrt-train: {folder}: {what}", flush=True)
-    code, finished = run_iteration(cfg)
-    finished = finished and (folder / "policy.onnx").is_file()
-    if finished:
-        if after is not None:
-            after()
-        (folder / DONE).touch()
-    return finished, code
 
 
 def drive_in_simulator(a: argparse.Namespace, model: Path, drives: Path, k: int) -> None:
