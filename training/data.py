@@ -24,7 +24,7 @@ from torch.utils.data import Dataset, default_collate
 
 from carrt.episodes.reader import Episode, labels_before, read_episode
 from carrt.interfaces import Mode
-from carrt.model_contract import IMAGE_SHAPE
+from carrt.model_contract import HORIZON, IMAGE_SHAPE
 from training.episodes import (  # re-exported: the stages and tests import them from here
     data_digest,
     load_episodes,
@@ -251,7 +251,7 @@ class WindowDataset(Dataset):
     def __init__(
         self,
         episodes: Sequence[Episode],
-        horizon: int = 10,
+        horizon: int = HORIZON,
         *,
         predict_size: int = 16,
         collision_free_only: bool = False,
@@ -351,7 +351,7 @@ class ImitationDataset(WindowDataset):
     def __init__(
         self,
         episodes: Sequence[Episode],
-        horizon: int = 10,
+        horizon: int = HORIZON,
         *,
         collision_free_only: bool = True,
         intervention_weight: float = 1.0,

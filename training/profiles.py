@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from carrt.model_contract import HORIZON
+
 # Where the world model's actions enter (WorldModel): "first", the paper's Reveries-net (the
 # first GRU layer only); "all", every GRU layer and every head, so a head can read the action
 # directly instead of through states the image set.
@@ -26,7 +28,7 @@ class Profile:
     gru_layers: int = 3  # layer 1 → images, layer 2 → speed, last → collision
     predict_size: int = 96  # side of the predicted future images (pixels)
     policy_hidden: int = 256
-    horizon: int = 10  # H, the paper's 1 s at 10 Hz
+    horizon: int = HORIZON  # H, the paper's 1 s at 10 Hz
     min_sigma: float = 0.05  # floor on the policy's σ (evidential σ must not collapse)
     input_size: int = 96  # side the 96×96 frame is resized to inside the model (backbone input)
     # WORLD_ACTION_INPUTS; set per run (IterateConfig.world_action_inputs), saved in the

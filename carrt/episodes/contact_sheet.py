@@ -15,6 +15,7 @@ import numpy as np
 
 from carrt.episodes.reader import Episode
 from carrt.errors import UserError
+from carrt.model_contract import IMAGE_SHAPE
 
 
 def _require_frames(ep: Episode) -> None:
@@ -33,7 +34,7 @@ def render_contact_sheet(
     picks = list(range(0, ep.n, every))
     rows = -(-len(picks) // columns)
     cols = min(columns, len(picks))
-    tile, caption = 96, 12
+    tile, caption = IMAGE_SHAPE[0], 12  # frames at their own size
     sheet = np.full((rows * (tile + caption), cols * tile, 3), 32, dtype=np.uint8)
     t0 = float(ep.timestamps[0])
     for slot, i in enumerate(picks):

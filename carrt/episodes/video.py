@@ -23,6 +23,7 @@ import numpy as np
 from carrt.episodes.reader import Episode
 from carrt.errors import UserError
 from carrt.interfaces import Mode
+from carrt.model_contract import IMAGE_SHAPE
 
 PANEL_W = 272  # the side panel; with a 384-px camera image the frame is 656×384 (even: yuv420p)
 MODE_COLOURS = {  # RGB
@@ -69,7 +70,7 @@ def _plan(img: np.ndarray, x: int, y: int, w: int, h: int, mu: np.ndarray) -> No
 def compose(ep: Episode, i: int, scale: int = 4) -> np.ndarray:
     """Frame i of `ep` enlarged, with its panel: an RGB image (96·scale) × (96·scale + PANEL_W)."""
     rec = ep.steps[i]
-    size = 96 * scale
+    size = IMAGE_SHAPE[0] * scale
     camera = cv2.resize(np.asarray(ep.frames[i]), (size, size), interpolation=cv2.INTER_NEAREST)
     if ep.collision[i]:
         cv2.rectangle(camera, (0, 0), (size - 1, size - 1), (255, 40, 40), max(2, scale))
@@ -162,7 +163,7 @@ def render_video(
 
 
 def _write_mjpg(frames: Iterator[np.ndarray], out: Path, fps: float, scale: int) -> None:
-    size = (96 * scale + PANEL_W, 96 * scale)
+    size = (IMAGE_SHAPE[1] * scale + PANEL_W, IMAGE_SHAPE[0] * scale)
     writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"MJPG"), float(fps), size)
     if not writer.isOpened():
         raise UserError(f"{out}: OpenCV cannot write MJPG video here")
