@@ -11,18 +11,18 @@ import pytest
 
 pytest.importorskip("torch")
 
-from research.variants.config import ResearchConfig  # noqa: E402
-from training import settings_doc  # noqa: E402
-from training.config import (  # noqa: E402
+from research.variants.config import ResearchConfig
+from training import settings_doc
+from training.config import (
     FROZEN,
     RESEARCH_SETTINGS,
     IterateConfig,
     UsageError,
     apply_set,
 )
-from training.iterate import main, parse  # noqa: E402
-from training.loop_config import FILE, TrainingLoopConfig  # noqa: E402
-from training.setting import problems  # noqa: E402
+from training.iterate import main, parse
+from training.loop_config import FILE, TrainingLoopConfig
+from training.setting import problems
 
 
 def test_the_docs_tables_are_what_the_declarations_make():
@@ -73,8 +73,9 @@ def test_research_train_lists_and_takes_its_settings(capsys):
 
     cfg = research_config(["--episodes", "e", "--out", "o", "--set", "refine_search=true"])
     assert isinstance(cfg, ResearchConfig) and cfg.refine_search and cfg.dirl
-    with pytest.raises(UsageError, match="outcome_temperature must be > 0, got 0.0"):
+    with pytest.raises(UsageError, match=None) as info:
         research_config(["--episodes", "e", "--out", "o", "--set", "outcome_temperature=0"])
+    assert str(info.value) == "outcome_temperature must be > 0, got 0.0"
     with pytest.raises(SystemExit):
         research_config(["--settings"])
     assert "  counterfactual_starts (int) = 0; allowed: ≥ 0" in capsys.readouterr().out
@@ -93,8 +94,7 @@ def test_research_train_lists_and_takes_its_settings(capsys):
         ("refine_lr=inf", "--set refine_lr=inf: not a valid float"),
         ("grad_clip=-inf", "--set grad_clip=-inf: not a valid float"),
         ("refine_lrr=1", "unknown field (did you mean refine_lr?) (see carrt-train --settings)"),
-        ("refine_search=true", "refine_search is a research variant: run it with "
-         "research/variants/train.py"),  # fmt: skip
+        ("refine_search=true", "refine_search is a research variant: run it with research/"),
         ("counterfactual_starts=0", "counterfactual_starts is a research variant"),
         ("episodes=x", "--set episodes: unknown field"),  # a flag's, not --set's
     ],
