@@ -101,8 +101,10 @@ def run(cfg: IterateConfig, dist: Dist | None = None, variants: Variants | None 
     """One iteration, as Algorithm 1 reads: its data and starting point, then imitation, the
     world model and refinement (those the start asks for, in that order), the models saved,
     the policy exported and the run reported. Returns a summary (also on non-zero ranks)."""
+    from training.export_step import export_policy
     from training.imitation import train_imitation
     from training.refine import train_refine
+    from training.run_report import report_run
     from training.world_model_stage import collision_class_weight, train_world_model
 
     dist = dist or Dist()
@@ -127,18 +129,17 @@ def run(cfg: IterateConfig, dist: Dist | None = None, variants: Variants | None 
             )
         if "world_model" in start.stages:
             windows = data.world_windows
+            weight = cfg.collision_weight or collision_class_weight(windows.step_labels())
             results["world_model"] = train_world_model(
-                cfg, world_model, windows, start.norm, ctx, policy=policy,
-                collision_weight=cfg.collision_weight
-                or collision_class_weight(windows.step_labels()),
-                resume=resume.get("world_model"), val_dataset=data.world_val_windows,
+                cfg, world_model, windows, start.norm, ctx, collision_weight=weight,
+                policy=policy, resume=resume.get("world_model"),
+                val_dataset=data.world_val_windows,
             )  # fmt: skip
         if "refine" in start.stages:
             demonstrations = data.demonstrations() if cfg.refine_w_imitation else None
-            results["refine"] = variants.refinement(
-                cfg, policy, world_model, data, start.norm, ctx, resume.get("refine"),
-                demonstrations,
-            ) or train_refine(
+            variant = variants.refinement(cfg, policy, world_model, data, start.norm, ctx,
+                                          resume.get("refine"), demonstrations)  # fmt: skip
+            results["refine"] = variant or train_refine(  # the paper's
                 cfg, policy, world_model, data.windows, start.norm, ctx,
                 resume=resume.get("refine"), val_dataset=data.val_windows,
                 demonstrations=demonstrations, start_policy=start.refine_start,
@@ -150,9 +151,6 @@ def run(cfg: IterateConfig, dist: Dist | None = None, variants: Variants | None 
     if not dist.is_main:
         return summary
     save_final(cfg, common, start, results, policy, world_model)
-    from training.export_step import export_policy
-    from training.run_report import report_run
-
     exported = export_policy(cfg, Path(cfg.out))
     summary.update(
         report_run(
