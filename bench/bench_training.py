@@ -55,12 +55,12 @@ def _stage(name, cfg, policy, world_model, windows, free, norm):
 def profile_throughput(profile: str, episodes) -> dict:
     import torch
 
-    from training.config import PRESETS, IterateConfig
+    from training.config import PRESETS, TrainingConfig
     from training.data import FrameStore, ImitationDataset, WindowDataset, compute_normalisation
     from training.models import PolicyNet, WorldModel, count_parameters
 
     preset = {**PRESETS[profile], "eval_every": 0}
-    cfg = dataclasses.replace(IterateConfig(profile=profile), **preset, progress=False)
+    cfg = dataclasses.replace(TrainingConfig(profile=profile), **preset, progress=False)
     p = cfg.profile_obj
     norm = compute_normalisation(episodes)
     store = FrameStore(episodes)

@@ -1,7 +1,7 @@
 """What the control loop drives: the real car's parts, or the simulator's, as one `Rig`.
 
 The session builds a rig, hands its parts to the loop and calls `finish` at the end; it does not
-know which kind it has. Which one is opened is a row of the table in carrt/rigs.py. The car's
+know which kind it has. Which one is opened is a row of the table in carrt/rig_table.py. The car's
 factory is here; the simulator's is `carrt/sim/rig.py`, which imports this module (and nothing
 imports back), so the two never form an import circle.
 """
@@ -63,7 +63,7 @@ def open_car_rig(
     stack: contextlib.ExitStack, drive: Any, config: Any, *, driving: bool, kind: Any
 ) -> Rig:
     """The real car: OpenCV camera, serial board, pygame pad; each checked before the next.
-    (A factory of carrt/rigs.py: what `drive` says of the car, its port and camera, is already
+    (A factory of carrt/rig_table.py: what `drive` says of the car, its port and camera, is already
     in the car config `config`.)"""
     from carrt.camera import OpenCVCamera
     from carrt.joystick import PygameJoystick

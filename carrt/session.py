@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from carrt import __version__, rigs
+from carrt import __version__, rig_table
 from carrt import config as car_config
 from carrt.disk_space import check_room
 from carrt.errors import UserError
@@ -51,7 +51,7 @@ class DriveConfig:
     The fields are the flags of the same names (`sets`: the --set items)."""
 
     model: str | None = None  # the policy, .onnx or `demo`; None: teleop (a person or the expert)
-    rig: str = "car"  # a row of carrt/rigs.py (the command line's --rig, --sim, --board)
+    rig: str = "car"  # a row of carrt/rig_table.py (the command line's --rig, --sim, --board)
     config: str | None = None  # the car TOML; None: built-in defaults
     sets: tuple[str, ...] = ()  # SECTION.KEY=VALUE overrides of the car config
     port: str | None = None  # overrides serial.port
@@ -62,7 +62,7 @@ class DriveConfig:
     seed: int = 0  # noise injection; on the simulator also the camera's phase and random starts
     summary_json: str | None = None
     view: str | None = None  # [HOST:]PORT of the live view
-    # the simulator's (rows of carrt/rigs.py that say simulator)
+    # the simulator's (rows of carrt/rig_table.py that say simulator)
     layout: str = "easy"
     track_seed: int = 0
     realtime: bool = False  # forced by a person driving, a live view, or an emulated board
@@ -106,7 +106,7 @@ SIM_DEFAULTS = ("pwm.max_forward=1.0", "pwm.max_reverse=1.0")
 def load_config(cfg: DriveConfig) -> car_config.CarConfig:
     """The car config the drive runs with: the TOML, the simulator's throttle range, the
     --set items, then the flags that override a key."""
-    simulated = rigs.lookup(cfg.rig).simulator
+    simulated = rig_table.lookup(cfg.rig).simulator
     overrides = [*(SIM_DEFAULTS if simulated else ()), *cfg.sets]
     for value, key in ((cfg.port, "serial.port"), (cfg.camera, "camera.source"),
                        (cfg.out, "episodes.dir")):  # fmt: skip
@@ -163,7 +163,7 @@ def run_session(
 
             view = ViewServer(cfg.view)  # binds now: a port in use ends here, car untouched
             stack.callback(view.close)
-        rig = rigs.open_rig(stack, cfg, config, driving=policy is not None)
+        rig = rig_table.open_rig(stack, cfg, config, driving=policy is not None)
         link = rig.link
         ack = link.keep_config(car_config.board_config(config))  # and after every reboot
         if ack.result != 0:
@@ -200,7 +200,7 @@ def run_session(
             collisions=rig.collisions,
         )
         metadata = _episode_metadata(config, policy, link, cfg.command)
-        if rigs.lookup(cfg.rig).simulator:
+        if rig_table.lookup(cfg.rig).simulator:
             metadata["sim"] = {"layout": cfg.layout, "track_seed": cfg.track_seed}
         loop = ControlLoop(
             parts,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from carrt import layouts, rigs
+from carrt import layouts, rig_table
 from carrt.arg_types import finite_non_negative
 from carrt.errors import UserError
 from carrt.session import LOG, DriveConfig, run_session
@@ -96,8 +96,8 @@ def _common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--rig",
         metavar="NAME",
-        help="what to drive, from carrt/rigs.py's table: "
-        + "; ".join(f"{k.name}: {k.summary}" for k in rigs.RIGS.values())
+        help="what to drive, from carrt/rig_table.py's table: "
+        + "; ".join(f"{k.name}: {k.summary}" for k in rig_table.RIGS.values())
         + " (default: car)",
     )
     sim = parser.add_argument_group("simulator (no car needed)")
@@ -148,7 +148,7 @@ def drive_config(args: argparse.Namespace) -> DriveConfig:
     """The one place the command line becomes a drive: every flag of teleop and drive, the rig
     resolved from --rig / --sim / --board (a wrong or doubled one is a UserError here, before
     anything loads)."""
-    rig = rigs.chosen(args.rig, sim=args.sim, board=args.board).name
+    rig = rig_table.chosen(args.rig, sim=args.sim, board=args.board).name
     return DriveConfig(
         model=getattr(args, "model", None),
         rig=rig,

@@ -105,9 +105,9 @@ class Weights:
 
     @classmethod
     def from_training(cls) -> Weights:
-        from training.config import IterateConfig
+        from training.config import TrainingConfig
 
-        cfg = IterateConfig()
+        cfg = TrainingConfig()
         return cls(w_speed=cfg.refine_w_speed, w_collision=cfg.refine_w_collision)
 
 

@@ -29,7 +29,7 @@ def member_runs(step: StudyStep, tag: str, world: Path, seed: int, count: int,
                 command: Callable[[Path, list[str]], list[str]]) -> list[Path]:  # fmt: skip
     """`count` more world models beside `world` (its name's "world-model" → "member<m>"):
     `command(out, extra)` is the command that trained `world`, with its seed changed and the
-    world model started from its own initialisation (IterateConfig.world_model_fresh)."""
+    world model started from its own initialisation (TrainingConfig.world_model_fresh)."""
     out = []
     for m in range(1, count + 1):
         run = world.with_name(world.name.replace("world-model", f"member{m}"))

@@ -584,12 +584,12 @@ def main(argv: list[str] | None = None) -> int:
         from research.check_summary import summary
         from research.variants.counterfactual import load as load_set
         from research.variants.counterfactual import score
-        from training.config import IterateConfig
+        from training.config import TrainingConfig
 
         model, data = load(Path(a.run) / "ground_model.pt"), load_set(a.data)
         if a.perfect_map:
             model = PerfectMapModel(model.speed_response, data)
-        result = summary(score(model, data, IterateConfig()))
+        result = summary(score(model, data, TrainingConfig()))
         print(json.dumps({k: v for k, v in result.items()}, indent=1))
         return 0
     except UserError as exc:

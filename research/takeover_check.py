@@ -38,7 +38,7 @@ tuned on the placements the table judges (the test placements, 100-199).
 
 With `refine`, the last round's policy is also refined the paper's way: a world model learns
 from every frame so far (the 0.5 s before each take-over labelled a collision, as the paper
-counts its e-stops: IterateConfig.takeovers_as_collisions) and its check runs on the held-out
+counts its e-stops: TrainingConfig.takeovers_as_collisions) and its check runs on the held-out
 placements 200-204; the policy is refined in it with the study's gradient and safeguards
 ("takeovers<k>+refined") and without the uncertainty term ("takeovers<k>+refined-unc", the
 paper's ablation), on the same frames as the round; `refine_paper_form` adds the paper's

@@ -29,7 +29,7 @@ class TakeoverConfig:
     robustness_rounds: int = 0
     demo_noise: tuple[float, ...] = (0.0,)  # σ of the demonstrations and the take-overs
     refine: bool = False  # + a world model on the last round's frames and refinement in it
-    # the world models' labels (IterateConfig.takeovers_as_collisions): the 0.5 s before each
+    # the world models' labels (TrainingConfig.takeovers_as_collisions): the 0.5 s before each
     # take-over a collision too, as the table of 2026-11-26 ran (the paper's e-stop = collision)
     takeovers_as_collisions: bool = True
     # with refine: also the paper's pure form of refinement in the same world model, with and

@@ -106,7 +106,7 @@ def refinements(cfg: TakeoverConfig, step: StudyStep, tag: str, seed: int, data:
 
 def collision_labels(takeovers: bool) -> str:
     """The iterate.py setting saying whether the 0.5 s before each take-over is labelled a
-    collision (IterateConfig.takeovers_as_collisions) in a world model's or refinement's frames."""
+    collision (TrainingConfig.takeovers_as_collisions) in a world model's or refinement's frames."""
     return f"takeovers_as_collisions={str(takeovers).lower()}"
 
 

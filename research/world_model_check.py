@@ -176,7 +176,7 @@ def score_runs(cfg: WorldModelCheckConfig, paths: dict[str, Path]) -> dict[str, 
     from research import ground_model
     from research.variants.counterfactual import load, score
     from training import checkpoint as ck
-    from training.config import IterateConfig
+    from training.config import TrainingConfig
 
     torch.set_num_threads(cfg.threads)
     data = load(paths["set"])
@@ -185,14 +185,14 @@ def score_runs(cfg: WorldModelCheckConfig, paths: dict[str, Path]) -> dict[str, 
         for form in cfg.forms:
             run = paths.get(f"{form}-seed{seed}")
             if form == GROUND and run is not None and (run / ".done").is_file():
-                # the refinement weights the Reveries-net runs use (IterateConfig's defaults)
+                # the refinement weights the Reveries-net runs use (TrainingConfig's defaults)
                 model = ground_model.load(run / "ground_model.pt")
-                full = score(model, data, IterateConfig())
+                full = score(model, data, TrainingConfig())
                 scored[f"{form}-seed{seed}"] = {"form": form, "seed": seed, **summary(full),
                                                 "check": full}  # fmt: skip
                 if "pose" in data:  # the set knows each start's pose: the ceiling too
                     ceiling = ground_model.PerfectMapModel(model.speed_response, data)
-                    top = score(ceiling, data, IterateConfig())
+                    top = score(ceiling, data, TrainingConfig())
                     row = {"form": PERFECT, "seed": seed, **summary(top), "check": top}
                     scored[f"{PERFECT}-seed{seed}"] = row
                 continue
@@ -213,9 +213,9 @@ def constant_baselines(data: dict) -> dict[str, float]:
     import numpy as np
 
     from research.variants.counterfactual import GRADIENT_PAIRS, true_objective
-    from training.config import IterateConfig
+    from training.config import TrainingConfig
 
-    names, weights = list(data["meta"]["sequences"]), IterateConfig()
+    names, weights = list(data["meta"]["sequences"]), TrainingConfig()
     truth = true_objective(data, weights.refine_w_speed, weights.refine_w_collision)
 
     def best_constant(diff) -> float | None:  # None where the truth ties everywhere

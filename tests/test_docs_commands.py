@@ -163,14 +163,14 @@ def test_the_check_finds_a_missing_flag_subcommand_target_and_module(tmp_path):
 
 
 def set_problems(found: list[Command]) -> list[str]:
-    """`--set KEY=VALUE` in the docs names a real setting: an IterateConfig field for training
+    """`--set KEY=VALUE` in the docs names a real setting: an TrainingConfig field for training
     (training/config.py), a `section.key` of the car's config for carrt (carrt/config.py)."""
     import dataclasses
 
     from carrt.config import CarConfig
-    from training.config import IterateConfig
+    from training.config import TrainingConfig
 
-    training_fields = {f.name for f in dataclasses.fields(IterateConfig)}
+    training_fields = {f.name for f in dataclasses.fields(TrainingConfig)}
     car = CarConfig()
     car_keys = {
         f"{s.name}.{f.name}"

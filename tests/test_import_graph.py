@@ -2,7 +2,7 @@
 
 No import circles anywhere in the tree (lazy imports inside functions included: they hide a
 circle, they do not remove it; so do the "module:function" names of a factory table such as
-carrt/rigs.py). The layers, bottom to top: firmware_bridge <- carrt <- training <- export, with
+carrt/rig_table.py). The layers, bottom to top: firmware_bridge <- carrt <- training <- export, with
 bench and research on top; a layer imports only from the layers below it, carrt never imports
 torch (the car has none), and nothing in the simulator imports a command-line module (the CLI
 is the top of carrt: the simulator is what it calls, not what it is built from). And no module so
@@ -145,8 +145,8 @@ def is_cli_module(name: str) -> bool:
 def test_no_import_circles_anywhere_in_the_tree():
     graph = import_graph(project_modules())
     assert len(graph) > 80
-    assert "carrt.sim.rig" in graph["carrt.rigs"], "tables of named factories count too"
-    assert "carrt.rigs" in graph["carrt.session"], "lazy imports count too"
+    assert "carrt.sim.rig" in graph["carrt.rig_table"], "tables of named factories count too"
+    assert "carrt.rig_table" in graph["carrt.session"], "lazy imports count too"
     assert cycles(graph) == []
 
 

@@ -15,7 +15,7 @@ torch = pytest.importorskip("torch")
 from export.parity import sample_frames  # noqa: E402
 from research import null_candidates as null  # noqa: E402
 from training import checkpoint as ck  # noqa: E402
-from training.config import IterateConfig  # noqa: E402
+from training.config import TrainingConfig  # noqa: E402
 from training.data import compute_normalisation, load_episodes  # noqa: E402
 from training.models import PolicyNet  # noqa: E402
 
@@ -25,7 +25,7 @@ def start_and_like(sim_episodes, tmp_path_factory):
     """A tiny policy checkpoint (untrained: what is measured is how far plans move, not how
     well they drive), and a "refined" copy whose policy head was nudged."""
     episodes = load_episodes([sim_episodes])
-    cfg = IterateConfig(profile="tiny")
+    cfg = TrainingConfig(profile="tiny")
     torch.manual_seed(0)
     policy = PolicyNet(cfg.profile_obj)
     norm = compute_normalisation(episodes)

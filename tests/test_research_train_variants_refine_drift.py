@@ -16,7 +16,7 @@ from types import SimpleNamespace  # noqa: E402
 from research.variants import refine_drift as rd  # noqa: E402
 from research.variants.train import main  # noqa: E402
 from training import checkpoint as ck  # noqa: E402
-from training.config import IterateConfig  # noqa: E402
+from training.config import TrainingConfig  # noqa: E402
 from training.data import Normalisation  # noqa: E402
 from training.models import PolicyNet, WorldModel  # noqa: E402
 
@@ -102,7 +102,7 @@ def _run(folder, policy, world_model, norm, cfg):
 def runs(tmp_path):
     """Two tiny runs (a start and a "refined" copy with a nudged policy head) and a set of
     four frames as the counterfactual check stores them."""
-    cfg, norm = IterateConfig(profile="tiny"), Normalisation()
+    cfg, norm = TrainingConfig(profile="tiny"), Normalisation()
     torch.manual_seed(0)
     policy, world_model = PolicyNet(cfg.profile_obj), WorldModel(cfg.profile_obj)
     for model in (policy, world_model):

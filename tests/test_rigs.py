@@ -1,5 +1,5 @@
-"""The rigs are one table of named factories (carrt/rigs.py): every name in it opens, an unknown
-name is one line and exit 2, and a new board is one class and one row."""
+"""The rigs are one table of named factories (carrt/rig_table.py): every name in it opens, an
+unknown name is one line and exit 2, and a new board is one class and one row."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import inspect
 
 import pytest
 
-from carrt import rigs
+from carrt import rig_table
 from carrt.cli import build_parser, main
 from carrt.session_cmd import drive_config
 from firmware_bridge.virtual import VirtualBoard
@@ -25,20 +25,20 @@ def parse(*argv: str):
 
 def chosen(args):
     """The row the command line's drive names."""
-    return rigs.lookup(drive_config(args).rig)
+    return rig_table.lookup(drive_config(args).rig)
 
 
-@pytest.mark.parametrize("name", sorted(rigs.RIGS))
+@pytest.mark.parametrize("name", sorted(rig_table.RIGS))
 def test_every_registered_rig_resolves(name):
     kind = chosen(parse("--rig", name))
-    assert kind is rigs.RIGS[name] and kind.name == name and kind.summary
-    factory = rigs.load(kind.factory)
+    assert kind is rig_table.RIGS[name] and kind.name == name and kind.summary
+    factory = rig_table.load(kind.factory)
     assert {"stack", "drive", "config", "driving", "kind"} <= set(
         inspect.signature(factory).parameters
     )
     assert (kind.board is not None) == kind.simulator, "a simulator rig names its board"
     if kind.board is not None:
-        board = rigs.load(kind.board)
+        board = rig_table.load(kind.board)
         assert board.LABEL and callable(board.start) and callable(board.stop)
 
 
@@ -47,7 +47,7 @@ def test_the_older_flags_choose_rows_of_the_same_table():
     assert chosen(parse("--sim")).name == "sim"
     assert chosen(parse("--sim", "--board", "virtual")).name == "sim"
     assert chosen(parse("--sim", "--board", "avr")).name == "avr"
-    assert set(rigs.BOARD_RIGS.values()) <= set(rigs.RIGS)
+    assert set(rig_table.BOARD_RIGS.values()) <= set(rig_table.RIGS)
 
 
 @pytest.mark.parametrize(
@@ -75,7 +75,7 @@ def test_rig_sim_drives_the_simulator(capsys):
 
 
 def test_a_new_board_is_one_class_and_one_row(monkeypatch, capsys):
-    row = rigs.RigKind(
+    row = rig_table.RigKind(
         "table-board",
         "the simulator on a board registered by a test",
         "carrt.sim.rig:open_sim_rig",
@@ -83,7 +83,7 @@ def test_a_new_board_is_one_class_and_one_row(monkeypatch, capsys):
         simulator=True,
         always_realtime=True,
     )
-    monkeypatch.setitem(rigs.RIGS, row.name, row)
+    monkeypatch.setitem(rig_table.RIGS, row.name, row)
     argv = ["drive", "--rig", row.name, "--autopilot", "--model", "demo", "--duration", "2"]
     assert main(argv) == 0
     out = capsys.readouterr().out

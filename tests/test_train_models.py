@@ -373,12 +373,12 @@ def test_with_first_cutting_the_first_layer_makes_it_deaf():
 
 def test_action_inputs_travel_with_the_checkpoint_and_old_ones_load_as_first(tmp_path):
     from training import checkpoint as ck
-    from training.config import IterateConfig, UsageError, apply_set
+    from training.config import TrainingConfig, UsageError, apply_set
 
-    cfg = apply_set(IterateConfig(profile="tiny"), ["world_action_inputs=all"])
+    cfg = apply_set(TrainingConfig(profile="tiny"), ["world_action_inputs=all"])
     assert cfg.profile_obj == ALL
     with pytest.raises(UsageError, match="world_action_inputs must be one of first, all"):
-        apply_set(IterateConfig(), ["world_action_inputs=every"]).validate()
+        apply_set(TrainingConfig(), ["world_action_inputs=every"]).validate()
     fields = dataclasses.asdict(cfg.profile_obj)
     assert ck.profile_of({"profile_fields": fields}).world_action_inputs == "all"
     old = {k: v for k, v in dataclasses.asdict(TINY).items() if k != "world_action_inputs"}

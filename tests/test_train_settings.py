@@ -16,7 +16,7 @@ from training import settings_doc
 from training.config import (
     FROZEN,
     RESEARCH_SETTINGS,
-    IterateConfig,
+    TrainingConfig,
     UsageError,
     apply_set,
 )
@@ -30,14 +30,14 @@ def test_the_docs_tables_are_what_the_declarations_make():
     page = settings_doc.DOC.read_text()
     assert settings_doc.BEGIN in page and settings_doc.END in page
     assert settings_doc.with_section(page) == page, "run: python -m training.settings_doc"
-    for spec in dataclasses.fields(IterateConfig):
+    for spec in dataclasses.fields(TrainingConfig):
         assert f"| `{spec.name}` |" in page
     for name in RESEARCH_SETTINGS:
         assert f"`{name}`" not in settings_doc.generated()  # not carrt-train's
 
 
 def test_every_setting_is_declared_with_a_doc():
-    for cls in (IterateConfig, ResearchConfig, TrainingLoopConfig):
+    for cls in (TrainingConfig, ResearchConfig, TrainingLoopConfig):
         for spec in dataclasses.fields(cls):
             assert spec.metadata.get("doc"), f"{cls.__name__}.{spec.name} has no doc"
         assert not problems(cls()), cls  # every default is allowed
@@ -48,7 +48,7 @@ def test_settings_lists_every_setting_with_its_doc_and_default(capsys):
         main(["--settings"])
     assert done.value.code == 0
     out = capsys.readouterr().out
-    for spec in dataclasses.fields(IterateConfig):
+    for spec in dataclasses.fields(TrainingConfig):
         default = settings_doc.value_text(spec.default)
         assert f"  {spec.name} (" in out and f") = {default}" in out, spec.name
         assert spec.metadata["doc"].split()[0] in out
@@ -60,9 +60,9 @@ def test_settings_lists_every_setting_with_its_doc_and_default(capsys):
 
 
 def test_the_research_settings_live_in_research():
-    """The ten research-only settings are ResearchConfig's, not IterateConfig's; the product's
+    """The ten research-only settings are ResearchConfig's, not TrainingConfig's; the product's
     list of their names (for its refusal) is exactly them."""
-    product = {f.name for f in dataclasses.fields(IterateConfig)}
+    product = {f.name for f in dataclasses.fields(TrainingConfig)}
     research = [f.name for f in dataclasses.fields(ResearchConfig) if f.name not in product]
     assert research == list(RESEARCH_SETTINGS) and len(research) == 10
     assert not product & set(RESEARCH_SETTINGS)
@@ -117,10 +117,10 @@ def test_a_config_built_in_code_is_checked_the_same_way():
         (dict(profile="huge"), "unknown profile 'huge'"),
     ]:
         with pytest.raises(UsageError, match=None) as info:
-            dataclasses.replace(IterateConfig(), **bad).validate()
+            dataclasses.replace(TrainingConfig(), **bad).validate()
         assert message in str(info.value), info.value
-    assert apply_set(IterateConfig(), ["refine_lr=2e-5"]).refine_lr == 2e-5
-    assert set(FROZEN) <= {f.name for f in dataclasses.fields(IterateConfig)}
+    assert apply_set(TrainingConfig(), ["refine_lr=2e-5"]).refine_lr == 2e-5
+    assert set(FROZEN) <= {f.name for f in dataclasses.fields(TrainingConfig)}
 
 
 @pytest.mark.parametrize(

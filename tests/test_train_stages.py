@@ -22,7 +22,6 @@ from train_stage_rig import first_last, models, stage_data, tiny  # noqa: E402
 
 from training import checkpoint as ck  # noqa: E402
 from training.data import take  # noqa: E402
-from training.evaluate import action_response, auroc, spearman  # noqa: E402
 from training.imitation import imitation_loss, train_imitation  # noqa: E402
 from training.refine import (  # noqa: E402
     anchor_penalty,
@@ -30,6 +29,7 @@ from training.refine import (  # noqa: E402
     imagined_objective,
     train_refine,
 )
+from training.report_metrics import action_response, auroc, spearman  # noqa: E402
 from training.trainer import param_digest  # noqa: E402
 from training.world_model_stage import train_world_model  # noqa: E402
 

@@ -13,7 +13,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from training.config import PRESETS, IterateConfig
+from training.config import PRESETS, TrainingConfig
 from training.data import ImitationDataset, WindowDataset, compute_normalisation, load_episodes
 from training.models import PolicyNet, WorldModel
 
@@ -28,8 +28,8 @@ def stage_data(sim_episodes):
     return episodes, norm, windows, free
 
 
-def tiny(**overrides) -> IterateConfig:
-    cfg = dataclasses.replace(IterateConfig(profile="tiny"), **PRESETS["tiny"], progress=False)
+def tiny(**overrides) -> TrainingConfig:
+    cfg = dataclasses.replace(TrainingConfig(profile="tiny"), **PRESETS["tiny"], progress=False)
     return dataclasses.replace(cfg, **overrides)
 
 

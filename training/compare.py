@@ -85,7 +85,7 @@ def plan_change(cfg, before: Path, after: Path) -> dict:
 
     from training import checkpoint as ck
     from training.data import WindowDataset, take
-    from training.evaluate import spread_indices
+    from training.report_metrics import spread_indices
     from training.stage_data import read_episodes
 
     _all, train_eps, val_eps = read_episodes(cfg)

@@ -24,7 +24,7 @@ class UsageError(UserError):
 
 
 @dataclass
-class IterateConfig:
+class TrainingConfig:
     """Everything one iteration does. Defaults are the paper's numbers where it gives them
     (the DIRL paper; "our choice" where it gives none). carrt's safeguards are one group: all of
     them off is the paper's pure form. The research variants' settings extend this class in
@@ -240,7 +240,7 @@ RESEARCH_SETTINGS = (
 )  # fmt: skip
 
 
-def apply_set(cfg: IterateConfig, items: list[str], prog: str = "carrt-train") -> IterateConfig:
+def apply_set(cfg: TrainingConfig, items: list[str], prog: str = "carrt-train") -> TrainingConfig:
     """`--set field=value` (carrt/settings.py: the parser the study shares); errors are
     UsageErrors (one line, exit 2). `prog` is the command whose `--settings` lists the fields."""
     names = {f.name for f in fields(cfg)}
@@ -264,6 +264,6 @@ def dirl_fields() -> tuple[str, ...]:
     stage 3 and the safeguards, and RESEARCH_SETTINGS. A run without them (not `dirl`) leaves
     them out of its report."""
     read = ("Stage 2", "Stage 3", "carrt's safeguards")
-    names = [spec.name for title, specs in groups(IterateConfig) if title.startswith(read)
+    names = [spec.name for title, specs in groups(TrainingConfig) if title.startswith(read)
              for spec in specs]  # fmt: skip
     return (*names, *RESEARCH_SETTINGS)

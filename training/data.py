@@ -236,7 +236,7 @@ class WindowDataset(Dataset):
     collision_free_only keeps the starts whose c_t and window labels are all 0.
     takeovers_as_collisions: `collisions` is also 1 in the 0.5 s before each take-over (the
     paper counts the person's e-stop as a collision; drives where the person always takes over
-    in time hold their near-crashes only as take-overs). IterateConfig says why it is off.
+    in time hold their near-crashes only as take-overs). TrainingConfig says why it is off.
 
     get_batch(items) builds a whole batch by tensor indexing (the trainer's fast path, no
     DataLoader); dataset[i] is get_batch([i]) without the batch dimension. Datasets over the

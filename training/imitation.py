@@ -29,7 +29,7 @@ from training.held_out import held_out
 from training.trainer import RunContext, StageLoop, StageResult, StageSpec
 
 if TYPE_CHECKING:
-    from training.config import IterateConfig
+    from training.config import TrainingConfig
 
 
 def imitation_loss(policy: nn.Module, batch: dict) -> tuple[torch.Tensor, dict]:
@@ -54,7 +54,7 @@ def imitation_loss(policy: nn.Module, batch: dict) -> tuple[torch.Tensor, dict]:
     return loss, {"l1_steering": steer.detach(), "l1_throttle": throttle.detach()}
 
 
-def augmented(cfg: IterateConfig, batch: dict, step: int, rank: int) -> dict:
+def augmented(cfg: TrainingConfig, batch: dict, step: int, rank: int) -> dict:
     """The batch colour-jittered (`augment`) and mirrored (`mirror_imitation`), each drawn from
     a generator seeded by (seed, step, rank): a resumed run draws what the unstopped one did."""
     if cfg.augment:
@@ -71,7 +71,7 @@ def augmented(cfg: IterateConfig, batch: dict, step: int, rank: int) -> dict:
 
 
 def train_imitation(
-    cfg: IterateConfig,
+    cfg: TrainingConfig,
     policy: nn.Module,
     dataset,
     ctx: RunContext | None = None,

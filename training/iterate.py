@@ -8,7 +8,7 @@ The world model and refinement in it run only when asked (--dirl), beside the im
     carrt-train --episodes demos/ --out runs/loop --iterations 3 --drive sim     # all in the sim
     carrt-train --episodes demos/ --out runs/loop --iterations 3                 # with a real car
 
-One iteration is imitation (training/iteration.py without `dirl`): from scratch, or with --init
+One iteration is imitation (training/training_run.py without `dirl`): from scratch, or with --init
 from the previous policy on every labelled frame given, the person's take-overs in the new drives
 included (a take-over round: reimitation_steps at reimitation_lr, the setting the rounds were
 measured with). That is what has made driving better: three rounds +0.057 ± 0.031 completion
@@ -42,7 +42,7 @@ once per command.
 car` (the default) stops when a policy's drives are missing and prints how to drive and record
 it on the car; run the same command again once they are in OUT/iter_k/drives. Every step is
 resumable: a finished one is skipped, a stopped training resumes from its checkpoint. The flags
-of one iteration, IterateConfig's numbers (training/config.py) and `--set` mean the same in
+of one iteration, TrainingConfig's numbers (training/config.py) and `--set` mean the same in
 both. Exports run as a `python -m export` process (training/ never imports export/).
 """
 
@@ -60,11 +60,11 @@ if __package__ in (None, ""):  # run as a script (demo_policy, torchrun): make `
 from carrt.episodes.reader import list_episodes
 from carrt.errors import UserError
 from training.compare import DriveFailed, DriveSpec
-from training.config import IterateConfig, UsageError
-from training.iteration_args import Parser, add_iteration_args, config_from
+from training.config import TrainingConfig, UsageError
 from training.loop_config import TrainingLoopConfig, add_loop_args, loop_config
 from training.loop_config import save as save_loop_config
 from training.one_run import run_iteration
+from training.training_args import Parser, add_iteration_args, config_from
 
 
 class _Help(argparse.RawDescriptionHelpFormatter):
@@ -97,7 +97,7 @@ DIRL_STATUS = (
 )
 
 
-def parse(argv: list[str] | None) -> tuple[argparse.Namespace, IterateConfig]:
+def parse(argv: list[str] | None) -> tuple[argparse.Namespace, TrainingConfig]:
     p = Parser(
         prog="carrt-train", description=__doc__.split("\n")[0],
         epilog="examples:\n" + __doc__.split("\n\n")[2], formatter_class=_Help,
@@ -176,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
-def imitation_config(cfg: IterateConfig) -> IterateConfig:
+def imitation_config(cfg: TrainingConfig) -> TrainingConfig:
     """An iteration's run: imitation alone; with --init a take-over round, the previous policy
     fine-tuned (reimitation_steps at reimitation_lr) on every labelled frame given."""
     cfg = dataclasses.replace(cfg, world_episodes=(), dirl=False)
@@ -187,7 +187,7 @@ def imitation_config(cfg: IterateConfig) -> IterateConfig:
     return cfg
 
 
-def dirl_config(cfg: IterateConfig) -> IterateConfig:
+def dirl_config(cfg: TrainingConfig) -> TrainingConfig:
     """--dirl's run, OUT/refined/: from OUT's policy (and its input scaling), a world model of
     every episode given (--world-episodes' when given) from its own initialisation, then
     refinement in it; no imitation again."""
@@ -196,7 +196,7 @@ def dirl_config(cfg: IterateConfig) -> IterateConfig:
                                reimitate=False)  # fmt: skip
 
 
-def one_iteration(a: argparse.Namespace, cfg: IterateConfig) -> int:
+def one_iteration(a: argparse.Namespace, cfg: TrainingConfig) -> int:
     """carrt-train without --iterations: the iteration, then with --dirl its refined run."""
     code, done = run_iteration(imitation_config(cfg))
     if not (done and a.dirl):
@@ -207,7 +207,7 @@ def one_iteration(a: argparse.Namespace, cfg: IterateConfig) -> int:
     return code
 
 
-def describe_refinement(cfg: IterateConfig) -> None:
+def describe_refinement(cfg: TrainingConfig) -> None:
     """OUT/report.md and metrics.json ("refined") say where the refined policy is, the status,
     and how far refinement moved the plan on held-out frames; one line says so."""
     from training.compare import change_line, plan_change
@@ -235,7 +235,7 @@ def describe_refinement(cfg: IterateConfig) -> None:
           f"{model}, the imitated one stays {out / 'policy.onnx'}")  # fmt: skip
 
 
-def loop(a: argparse.Namespace, cfg: IterateConfig) -> int:
+def loop(a: argparse.Namespace, cfg: TrainingConfig) -> int:
     """Algorithm 1, top to bottom. Returns the exit status (0 also when it stops for the car)."""
     out = Path(cfg.out)
     data = list(cfg.episodes)

@@ -1,7 +1,7 @@
 """The loop's settings (`carrt-train --iterations`): a documented dataclass, its flags and its file.
 
 The loop's flags say who drives each policy and where it is compared; they are not an
-iteration's settings (no run reads them), so they live here rather than in IterateConfig, and
+iteration's settings (no run reads them), so they live here rather than in TrainingConfig, and
 carrt-train makes them into flags as training/config.py's settings are made into --set: each
 flag's help, type, default and allowed values are its field's declaration (training/setting.py).
 A loop writes them into OUT/training_loop.json, so its folder says how it was driven; running the

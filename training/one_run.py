@@ -4,7 +4,7 @@ line and an exit status.
 carrt-train (training/iterate.py) runs one or two per iteration through `run_iteration`, and
 so does research/variants/train.py; `main` is one run of the iteration's flags as they are
 given (no imitation/refined split, no loop), what the tests call. The run itself is
-training/iteration.py's `run`.
+training/training_run.py's `run`.
 
 Exit status: 0 done (or stopped by stop_after), 1 diverged or export refused, 2 bad input, 130
 interrupted.
@@ -17,10 +17,10 @@ import sys
 
 from carrt.errors import UserError
 from training import checkpoint as ck
-from training import iteration
-from training.config import IterateConfig, UsageError
-from training.iteration_args import Parser, add_iteration_args, config_from
+from training import training_run
+from training.config import TrainingConfig, UsageError
 from training.trainer import Interrupted, StopRequested, init_distributed, shutdown_distributed
+from training.training_args import Parser, add_iteration_args, config_from
 
 
 def main(argv: list[str] | None = None, *, dirl: bool = False) -> int:
@@ -42,7 +42,7 @@ def bad_input(exc: Exception) -> int:
 
 
 def run_iteration(
-    cfg: IterateConfig, variants: iteration.Variants | None = None
+    cfg: TrainingConfig, variants: training_run.Variants | None = None
 ) -> tuple[int, bool]:
     """Run the iteration `cfg` describes (in this process's torchrun job, if any): its exit
     status, and whether it got to its end (not when it stopped at stop_after, failed or was
@@ -53,7 +53,7 @@ def run_iteration(
             dist = init_distributed(cfg.device)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-        summary = iteration.run(cfg, dist, variants)
+        summary = training_run.run(cfg, dist, variants)
         if dist.is_main:
             for line in summary.get("lines", []):
                 print(line)

@@ -31,7 +31,7 @@ class Profile:
     horizon: int = HORIZON  # H, the paper's 1 s at 10 Hz
     min_sigma: float = 0.05  # floor on the policy's σ (evidential σ must not collapse)
     input_size: int = 96  # side the 96×96 frame is resized to inside the model (backbone input)
-    # WORLD_ACTION_INPUTS; set per run (IterateConfig.world_action_inputs), saved in the
+    # WORLD_ACTION_INPUTS; set per run (TrainingConfig.world_action_inputs), saved in the
     # checkpoint's profile_fields; a checkpoint from before the field loads as "first"
     world_action_inputs: str = "first"
 

@@ -11,7 +11,7 @@ and each uncertainty is clipped at `uncertainty_clip` because u = (1+1/ν)β/(α
 α → 1 and a single such step would otherwise own the whole gradient. w_unc = 0 is the paper's
 "-unc" ablation (`--no-uncertainty`).
 
-carrt's safeguards (IterateConfig's safeguard group; all off is the paper's pure form):
+carrt's safeguards (TrainingConfig's safeguard group; all off is the paper's pure form):
 
 - `collision_prior_correction`: p̂ with the world model's collision class weight divided back
   out of its odds (WorldModel.imagine), so the objective sees a probability, not a weighted one.
@@ -59,7 +59,7 @@ from training.models import sample_actions
 from training.trainer import RunContext, StageLoop, StageResult, StageSpec, per_rank_batch
 
 if TYPE_CHECKING:
-    from training.config import IterateConfig
+    from training.config import TrainingConfig
     from training.data import Normalisation
 
 
@@ -111,7 +111,7 @@ def action_noise(shape, seed: int, step: int, rank: int, device) -> torch.Tensor
     return torch.randn(shape, generator=step_generator(seed, step, rank, 1009)).to(device)
 
 
-def demonstration_batch(demos, cfg: IterateConfig, step: int, ctx: RunContext) -> dict:
+def demonstration_batch(demos, cfg: TrainingConfig, step: int, ctx: RunContext) -> dict:
     """This rank's share of refine_batch_size demonstration windows, drawn by (seed, step, rank)."""
     gen = step_generator(cfg.seed, step, ctx.dist.rank, 1019)
     size = per_rank_batch(cfg.refine_batch_size, ctx.dist)
@@ -132,7 +132,7 @@ def throttle_only(grad: torch.Tensor) -> torch.Tensor:
     return torch.stack([torch.zeros_like(grad[..., 0]), grad[..., 1]], dim=-1)
 
 
-def imagined_objective(cfg: IterateConfig, world_model, batch: dict, actions, weights: tuple):
+def imagined_objective(cfg: TrainingConfig, world_model, batch: dict, actions, weights: tuple):
     """The paper's loss: the objective the world model imagines for the sampled actions (its
     gradient centred over the starts with `refine_center_gradient`, kept off the steering
     without `refine_steering`)."""
@@ -147,12 +147,12 @@ def imagined_objective(cfg: IterateConfig, world_model, batch: dict, actions, we
     return refine_objective(imagined, *weights)
 
 
-def uncertainty_weight(cfg: IterateConfig) -> float:
+def uncertainty_weight(cfg: TrainingConfig) -> float:
     return 0.0 if cfg.no_uncertainty else cfg.refine_w_uncertainty
 
 
 def refine_loss(
-    cfg: IterateConfig, world_model, batch: dict, actions, mu, *, weights: tuple, step: int,
+    cfg: TrainingConfig, world_model, batch: dict, actions, mu, *, weights: tuple, step: int,
     ctx: RunContext, step_loss=None, start=None, demonstrations=None, policy=None,
 ):  # fmt: skip
     """The loss of one refinement step: the imagined objective of the sampled actions (the
@@ -179,7 +179,7 @@ def refine_loss(
 
 
 def train_refine(
-    cfg: IterateConfig,
+    cfg: TrainingConfig,
     policy: nn.Module,
     world_model: nn.Module,
     dataset,
@@ -248,7 +248,7 @@ def train_refine(
     return loop.result
 
 
-def keep_candidate(cfg: IterateConfig, policy: nn.Module, ctx: RunContext, done: int) -> None:
+def keep_candidate(cfg: TrainingConfig, policy: nn.Module, ctx: RunContext, done: int) -> None:
     """Every `refine_candidates_every` steps (on rank 0, in a run that keeps files), the policy
     as it is then, as a checkpoint export and `--init` read (OUT/candidates/refine<step>.pt).
     Why: the imagined objective is not the track, so how many steps of it help can be decided
@@ -263,7 +263,7 @@ def keep_candidate(cfg: IterateConfig, policy: nn.Module, ctx: RunContext, done:
 
 @torch.no_grad()
 def held_out_objective(
-    cfg: IterateConfig, policy, world_model, dataset, device, batch_size=32, limit=256
+    cfg: TrainingConfig, policy, world_model, dataset, device, batch_size=32, limit=256
 ) -> dict:
     """The refinement objective with ε = 0 (the μ the car would drive) on fixed windows, mean
     over batches (training/held_out.py)."""

@@ -12,9 +12,9 @@ import json
 import math
 from pathlib import Path
 
-from training.evaluate import evaluate
 from training.export_step import Exported
 from training.figures import loss_curves, reveries, uncertainty_vs_error
+from training.report_metrics import held_out_metrics
 
 
 def _fmt(x, digits: int = 4) -> str:
@@ -31,13 +31,13 @@ def report_run(
     extras=(),
 ) -> dict:  # fmt: skip
     """Metrics, figures and report of a finished, exported iteration; `extras` are research
-    variants' report sections (training.iteration.Variants.report), called after the export."""
+    variants' report sections (training.training_run.Variants.report), called after the export."""
     from training.data import WindowDataset, placement_key, takeover_labels
 
     held_out = bool(val_eps)
     eval_eps = val_eps if held_out else train_eps
     profile = cfg.profile_obj
-    metrics, arrays = evaluate(
+    metrics, arrays = held_out_metrics(
         policy, world_model, eval_eps, profile, device, limit=cfg.eval_windows,
         takeovers_as_collisions=cfg.takeovers_as_collisions,
     )  # fmt: skip

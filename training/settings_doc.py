@@ -16,7 +16,7 @@ import textwrap
 from pathlib import Path
 from typing import Any
 
-from training.config import FROZEN, PRESETS, IterateConfig
+from training.config import FROZEN, PRESETS, TrainingConfig
 from training.loop_config import TrainingLoopConfig, flag
 from training.setting import allowed, groups, kind
 
@@ -50,7 +50,7 @@ def how_given(spec: dataclasses.Field) -> str:
     return f"given as {flag(spec.name)}, not --set" if spec.name in FROZEN else ""
 
 
-def listing(cls: type = IterateConfig, prog: str = "carrt-train") -> str:
+def listing(cls: type = TrainingConfig, prog: str = "carrt-train") -> str:
     """`prog --settings`: each setting under its group's heading, its type, default, the
     profiles' presets and allowed values on one line, its doc wrapped below."""
     lines = [f"{prog}'s settings, changed with --set NAME=VALUE: each with its type, default,",
@@ -95,7 +95,7 @@ def table(cls: type, presets: dict[str, dict], name_of=lambda n: n, head="Settin
 
 def generated() -> str:
     """The section between BEGIN and END: the settings, then the loop's flags."""
-    lines = [BEGIN, "", *table(IterateConfig, PRESETS),
+    lines = [BEGIN, "", *table(TrainingConfig, PRESETS),
              *table(TrainingLoopConfig, {}, flag, "Flag"), END]  # fmt: skip
     return "\n".join(lines)
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from training.config import IterateConfig, UsageError
+from training.config import TrainingConfig, UsageError
 from training.data import (
     FrameStore,
     ImitationDataset,
@@ -21,7 +21,7 @@ from training.data import (
 )
 
 
-def read_episodes(cfg: IterateConfig) -> tuple[list, list, list]:
+def read_episodes(cfg: TrainingConfig) -> tuple[list, list, list]:
     """(all, train, validation): validation holds out whole placements."""
     episodes = _load(cfg.episodes, "--episodes")
     train_eps, val_eps = split_by_placement(episodes, cfg.val_fraction, cfg.seed)
@@ -49,7 +49,7 @@ class WorldEpisodes:
     val: list
 
 
-def read_world_episodes(cfg: IterateConfig) -> WorldEpisodes | None:
+def read_world_episodes(cfg: TrainingConfig) -> WorldEpisodes | None:
     """None when the world model learns --episodes (the default)."""
     if not cfg.world_episodes:
         return None
@@ -61,7 +61,11 @@ class StageData:
     """The datasets every stage reads, over frames decoded once into RAM (data.FrameStore)."""
 
     def __init__(
-        self, cfg: IterateConfig, train_eps: list, val_eps: list, world: WorldEpisodes | None = None
+        self,
+        cfg: TrainingConfig,
+        train_eps: list,
+        val_eps: list,
+        world: WorldEpisodes | None = None,
     ) -> None:
         self.cfg, self.train_eps, self.val_eps = cfg, train_eps, val_eps
         self.horizon = cfg.profile_obj.horizon

@@ -24,7 +24,7 @@ from training.losses import evidential_classification_loss, evidential_regressio
 from training.trainer import RunContext, StageLoop, StageResult, StageSpec
 
 if TYPE_CHECKING:
-    from training.config import IterateConfig
+    from training.config import TrainingConfig
     from training.data import Normalisation
 
 
@@ -92,7 +92,7 @@ def world_model_loss(
 
 
 def train_world_model(
-    cfg: IterateConfig,
+    cfg: TrainingConfig,
     world_model: nn.Module,
     dataset,
     norm: Normalisation,
@@ -150,7 +150,7 @@ def train_world_model(
     return loop.result
 
 
-def mirrored(cfg: IterateConfig, batch: dict, step: int, rank: int) -> dict:
+def mirrored(cfg: TrainingConfig, batch: dict, step: int, rank: int) -> dict:
     """The batch mirrored (`mirror_world_model`), drawn from a generator seeded by (seed, step,
     rank): a resumed run draws what the unstopped one did."""
     if not cfg.mirror_world_model:

@@ -2,7 +2,7 @@
 
 Real time: the simulated car is the plant of the virtual board (the C core behind a pty), the
 camera renders on its own thread, and the real BoardLink talks over the pty — the full stack,
-only the physical world replaced; the board is the row's (carrt/rigs.py: the virtual board, or
+only the physical world replaced; the board is the row's (carrt/rig_table.py: the virtual board, or
 the firmware on the emulated AVR). Simulated clock (the default when no person drives and no
 live view watches): the same loop, arbitration and C core, with the link in-process
 (DirectBoardLink) and time jumping ahead, so hours of driving take minutes.
@@ -78,7 +78,7 @@ def open_sim_rig(
     driving: bool,
     kind: RigKind,
 ) -> Rig:
-    """The simulator as a rig (a factory of carrt/rigs.py), with `kind.board` as its board;
+    """The simulator as a rig (a factory of carrt/rig_table.py), with `kind.board` as its board;
     `drive` (a carrt.session.DriveConfig) says the placement, who drives and how fast."""
     from carrt.sim.expert import ScriptedExpert
     from carrt.sim.render import Renderer

@@ -1,6 +1,6 @@
-"""The research variants' settings: carrt-train's IterateConfig and ten more, declared the same way.
+"""The research variants' settings: carrt-train's TrainingConfig and ten more, declared alike.
 
-research/variants/train.py builds this config (carrt-train builds IterateConfig, which lacks
+research/variants/train.py builds this config (carrt-train builds TrainingConfig, which lacks
 these fields and refuses each by name: training/config.py RESEARCH_SETTINGS, kept equal to the
 fields below by a test). Each is a `setting()` (training/setting.py), so `research/variants/
 train.py --settings` lists them with their docs and the same checks refuse a bad value.
@@ -11,17 +11,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from training.config import IterateConfig
+from training.config import TrainingConfig
 from training.setting import setting
 
 
 @dataclass
-class ResearchConfig(IterateConfig):
-    """IterateConfig with the research variants' settings (research/variants/). Every one off
+class ResearchConfig(TrainingConfig):
+    """TrainingConfig with the research variants' settings (research/variants/). Every one off
     (refine_search, refine_outcomes false, counterfactual_starts 0) is carrt-train's run."""
 
     GROUPS: ClassVar[tuple[tuple[str, str], ...]] = (
-        *IterateConfig.GROUPS,
+        *TrainingConfig.GROUPS,
         ("Research: refinement by search among fixed alternatives "
          "(research/variants/refine_search.py)", "refine_search"),
         ("Research: refinement from the drives' recorded outcomes "

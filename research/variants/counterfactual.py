@@ -48,8 +48,8 @@ import torch
 from carrt.policy import file_sha256
 from research.variants.refine_search import SEARCH_SEQUENCES, best_moves
 from training import checkpoint as ck
-from training.evaluate import auroc, spearman
 from training.refine import sequence_objective, uncertainty_weight
+from training.report_metrics import auroc, spearman
 
 TARGETS = {"collision_auroc": 0.85, "rank_correlation": 0.5}  # issue 14's bar for trusting it
 
@@ -95,7 +95,7 @@ def true_objective(data: dict, w_speed: float, w_collision: float) -> np.ndarray
 @torch.no_grad()
 def score(world_model, data: dict, cfg) -> dict:
     """The three numbers (and their parts) for one world model on one counterfactual set; cfg:
-    the refinement weights (an IterateConfig, or its fields), -unc's zero included."""
+    the refinement weights (an TrainingConfig, or its fields), -unc's zero included."""
     # No normalisation argument: the world model carries its own (WorldModel.imagine).
     world_model.eval()
     n, k, h, _ = data["actions"].shape

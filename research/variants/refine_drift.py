@@ -120,7 +120,7 @@ def report_drift(cfg, out: Path, policy, world_model, windows, device, limit: in
     over `windows` (a WindowDataset of the held-out episodes); None when it refined nothing or
     its start is unknown. Recorded frames only, no simulator: it works on a car's episodes."""
     from training.data import take
-    from training.evaluate import spread_indices
+    from training.report_metrics import spread_indices
 
     if cfg.refine_steps <= 0 or len(windows) == 0:
         return None

@@ -4,7 +4,7 @@
         --set refine_search=true --set counterfactual_starts=6
 
 Same flags as `carrt-train` (its settings: ResearchConfig, research/variants/config.py, which
-`--settings` lists), and one run is one DIRL iteration in place (training/iteration.py
+`--settings` lists), and one run is one DIRL iteration in place (training/training_run.py
 with `dirl`: imitation → world model → refinement, OUT/policy.* the last stage's policy, as the
 study's chains read it); on top of them:
 
@@ -15,7 +15,7 @@ study's chains read it); on top of them:
   simulator only: research/variants/counterfactual.py) and where refinement moved the plan
   (research/variants/refine_drift.py), under the keys "counterfactual" and "refine_drift".
 
-The product never imports this: the variants plug in through training.iteration.Variants.
+The product never imports this: the variants plug in through training.training_run.Variants.
 """
 
 from __future__ import annotations
@@ -29,9 +29,9 @@ if __package__ in (None, ""):  # run as a script: make `research` and `training`
 
 from carrt.errors import UserError
 from research.variants.config import ResearchConfig
-from training import iteration
-from training.iteration_args import Parser, add_iteration_args, config_from
+from training import training_run
 from training.one_run import bad_input, run_iteration
+from training.training_args import Parser, add_iteration_args, config_from
 
 PROG = "research/variants/train.py"
 
@@ -98,7 +98,7 @@ def drift_section(cfg, out: Path, *, policy, world_model, windows, device):
     return "refine_drift", d, lines
 
 
-VARIANTS = iteration.Variants(refine=refine, report=[counterfactual_section, drift_section])
+VARIANTS = training_run.Variants(refine=refine, report=[counterfactual_section, drift_section])
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -197,7 +197,7 @@ def imitation_metrics(policy, dataset, device, *, limit=2048, batch_size=64) -> 
     }
 
 
-def evaluate(policy, world_model, episodes, profile, device, *, limit: int = 2048,
+def held_out_metrics(policy, world_model, episodes, profile, device, *, limit: int = 2048,
              takeovers_as_collisions: bool = False):  # fmt: skip
     """(metrics, arrays) on the given (held-out) episodes, the world model's collision labels
     as it was trained on them (takeovers_as_collisions); arrays feed figures.py. Without a

@@ -23,7 +23,7 @@ episodes given and refines; imitation does not run again (the DIRL paper's algor
 unless `reimitate` is set. With --world-episodes the world model learns those episodes instead
 (imitation and refinement still read --episodes). Its policy.pt is the last stage's.
 
-Every number lives in IterateConfig (training/config.py); a profile name picks model sizes and
+Every number lives in TrainingConfig (training/config.py); a profile name picks model sizes and
 a preset of steps and batch sizes (PRESETS), and `--set field=value` overrides any field.
 Checkpoints land in OUT/checkpoints every ckpt_every steps; Ctrl-C or SIGTERM finishes the step
 in flight and checkpoints it (a second Ctrl-C stops at once), and running the same command again
@@ -48,11 +48,11 @@ import torch
 from carrt.errors import UserError
 from carrt.model_contract import sim_placements
 from training import checkpoint as ck
-from training.config import IterateConfig, UsageError
+from training.config import TrainingConfig, UsageError
 from training.data import Normalisation, compute_normalisation, data_digest
-from training.iteration_args import init_paths
 from training.stage_data import StageData, read_episodes, read_world_episodes
 from training.trainer import Budget, Dist, RunContext
+from training.training_args import init_paths
 
 RESEARCH_ONLY = ("refine_search", "refine_outcomes", "counterfactual_starts")
 
@@ -68,7 +68,7 @@ class Variants:
     refine: Callable | None = None
     report: list[Callable] = field(default_factory=list)
 
-    def check(self, cfg: IterateConfig) -> None:
+    def check(self, cfg: TrainingConfig) -> None:
         if self.refine is not None or self.report:
             return
         asked = [name for name in RESEARCH_ONLY if getattr(cfg, name, False)]
@@ -97,7 +97,7 @@ class Start:
     refine_start: dict | None = None  # a resumed refinement: the policy it started from
 
 
-def run(cfg: IterateConfig, dist: Dist | None = None, variants: Variants | None = None) -> dict:
+def run(cfg: TrainingConfig, dist: Dist | None = None, variants: Variants | None = None) -> dict:
     """One iteration, as Algorithm 1 reads: its data and starting point, then imitation, the
     world model and refinement (those the start asks for, in that order), the models saved,
     the policy exported and the run reported. Returns a summary (also on non-zero ranks)."""
@@ -166,7 +166,7 @@ def run(cfg: IterateConfig, dist: Dist | None = None, variants: Variants | None 
     return summary
 
 
-def starting_point(cfg: IterateConfig, train_eps: list) -> Start:
+def starting_point(cfg: TrainingConfig, train_eps: list) -> Start:
     """Imitation alone without `dirl`; with it, the paper's stages (imitation once)."""
     dirl_stages = ["world_model", "refine"] if cfg.dirl else []
     if not cfg.init:
@@ -189,7 +189,7 @@ def starting_point(cfg: IterateConfig, train_eps: list) -> Start:
     )
 
 
-def build_models(cfg: IterateConfig, start: Start):
+def build_models(cfg: TrainingConfig, start: Start):
     from training.models import PolicyNet, WorldModel
 
     if cfg.threads:
@@ -214,7 +214,7 @@ def build_models(cfg: IterateConfig, start: Start):
     return policy, world_model
 
 
-def resume_checkpoints(cfg: IterateConfig, start: Start, digest: str, policy, world_model):
+def resume_checkpoints(cfg: TrainingConfig, start: Start, digest: str, policy, world_model):
     """The stages this run already checkpointed (running the command again resumes)."""
     targets = {s: getattr(cfg, f"{s}_steps") for s in start.stages}
     out = Path(cfg.out) / "checkpoints"
@@ -227,7 +227,7 @@ def resume_checkpoints(cfg: IterateConfig, start: Start, digest: str, policy, wo
     return existing
 
 
-def run_context(cfg: IterateConfig, dist: Dist, start: Start, digest: str, train_eps: list):
+def run_context(cfg: TrainingConfig, dist: Dist, start: Start, digest: str, train_eps: list):
     """What every stage shares: checkpoint fields, TensorBoard (rank 0), budget, progress."""
     out, writer = Path(cfg.out), None
     if dist.is_main:
@@ -254,7 +254,7 @@ def run_context(cfg: IterateConfig, dist: Dist, start: Start, digest: str, train
     return ctx, common
 
 
-def announce(cfg: IterateConfig, ctx: RunContext, start: Start, resume: dict) -> None:
+def announce(cfg: TrainingConfig, ctx: RunContext, start: Start, resume: dict) -> None:
     """training/pace.py, before the first step: each stage's steps still to take."""
     if ctx.pace is None:
         return
@@ -264,7 +264,7 @@ def announce(cfg: IterateConfig, ctx: RunContext, start: Start, resume: dict) ->
     ])  # fmt: skip
 
 
-def pace_of(cfg: IterateConfig, dist: Dist):
+def pace_of(cfg: TrainingConfig, dist: Dist):
     """training/pace.py on rank 0 with progress on: the expected duration and slow-run warning."""
     if not (cfg.progress and dist.is_main):
         return None

@@ -1,5 +1,5 @@
-"""carrt-train's flags for one iteration, and the IterateConfig they make (training/config.py);
-the loop's flags (training/iterate.py) extend them. Kept apart from training/iteration.py so the
+"""carrt-train's flags for one iteration, and the TrainingConfig they make (training/config.py);
+the loop's flags (training/iterate.py) extend them. Kept apart from training/training_run.py so the
 run reads on its own. research/variants/train.py makes its ResearchConfig with the same flags."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import dataclasses
 from pathlib import Path
 
 from training import checkpoint as ck
-from training.config import PRESETS, IterateConfig, UsageError, apply_set
+from training.config import PRESETS, TrainingConfig, UsageError, apply_set
 from training.profiles import PROFILES
 
 
@@ -22,7 +22,7 @@ class ListSettings(argparse.Action):
     """`--settings`: every setting with its doc, default (and the profiles' presets) and the
     values it allows, printed like `--help` prints the flags, then exit 0."""
 
-    def __init__(self, option_strings, dest, config_class=IterateConfig, **kwargs):
+    def __init__(self, option_strings, dest, config_class=TrainingConfig, **kwargs):
         self.config_class = config_class
         super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
 
@@ -33,7 +33,7 @@ class ListSettings(argparse.Action):
         parser.exit()
 
 
-def add_iteration_args(p: argparse.ArgumentParser, config_class: type = IterateConfig) -> None:
+def add_iteration_args(p: argparse.ArgumentParser, config_class: type = TrainingConfig) -> None:
     """The flags of one iteration (carrt-train's, which iterate.py's loop flags extend);
     `config_class` is the settings dataclass --set and --settings read."""
     p.add_argument("--episodes", nargs="+", required=True, metavar="DIR")
@@ -67,9 +67,9 @@ def add_iteration_args(p: argparse.ArgumentParser, config_class: type = IterateC
 
 
 def config_from(
-    a: argparse.Namespace, config_class: type = IterateConfig, prog: str = "carrt-train"
-) -> IterateConfig:
-    """The `config_class` (IterateConfig, or research's extension of it) of parsed iteration
+    a: argparse.Namespace, config_class: type = TrainingConfig, prog: str = "carrt-train"
+) -> TrainingConfig:
+    """The `config_class` (TrainingConfig, or research's extension of it) of parsed iteration
     flags: defaults, the profile's preset, then the flags, then --set; `prog` names the
     command in a --set error."""
     profile = a.profile or (init_profile(a.init) if a.init else "cpu")
