@@ -79,7 +79,9 @@ def _append_key(table: Table | OutOfOrderTableProxy, key: str, value: object) ->
     if last == len(body) - 1:
         table[key] = item
     else:
-        table.value._insert_after(body[last][0], key, item)  # tomlkit has no public one
+        # tomlkit has no public insert: _insert_at is in every release from 0.12 to 0.15 (0.15
+        # dropped the _insert_after this used, and a fresh install broke calibration)
+        table.value._insert_at(last + 1, key, item)
 
 
 def _extended_inline(table: InlineTable, added: Mapping[str, object]) -> InlineTable:
