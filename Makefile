@@ -71,22 +71,29 @@ demo: system-demo $(STAMP) core
 # then the runtime tests under 3.10 (without torch). pytest-xdist runs the runtime tests in
 # RUNTIME_JOBS processes (most of their time is a drive in real time, waiting) and the training
 # tests in TRAINING_JOBS (torch on one thread each: one per core); the tests marked `alone`
-# measure how fast processes stop and run by themselves. Measured: docs/development.md.
+# measure how fast processes stop and run by themselves; the tests marked `realtime` (timings of
+# the emulated board and of drives in real time) run REALTIME_JOBS at a time in a pass of their
+# own, not beside CPU-heavy tests that starve their emulator. Measured: docs/development.md.
 RUNTIME_JOBS ?= 3
+REALTIME_JOBS ?= 2
 TRAINING_JOBS ?= 2
 TRAINING_TESTS = tests/test_train_*.py tests/test_research_train_*.py tests/test_export.py
 test: system-test $(STAMP) $(LEROBOT_STAMP) core
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
-	$(PY) -m pytest -q -n $(RUNTIME_JOBS) -m "not install" --ignore-glob='tests/test_train_*' \
-		--ignore-glob='tests/test_research_train_*' --ignore=tests/test_export.py
+	$(PY) -m pytest -q -n $(RUNTIME_JOBS) -m "not install and not realtime" \
+		--ignore-glob='tests/test_train_*' --ignore-glob='tests/test_research_train_*' \
+		--ignore=tests/test_export.py
+	$(PY) -m pytest -q -n $(REALTIME_JOBS) -m realtime
 	$(PY) -m pytest -q -n $(TRAINING_JOBS) -m "not alone" $(TRAINING_TESTS)
 	$(PY) -m pytest -q -m alone $(TRAINING_TESTS)
 	$(PY) -m pytest -q -m install
 	$(MAKE) test-py310
 
 test-py310: system-test $(STAMP310) core
-	$(PY310) -m pytest -q -n $(RUNTIME_JOBS) --runtime-only -m "not install" -p no:cacheprovider
+	$(PY310) -m pytest -q -n $(RUNTIME_JOBS) --runtime-only -m "not install and not realtime" \
+		-p no:cacheprovider
+	$(PY310) -m pytest -q -n $(REALTIME_JOBS) --runtime-only -m realtime -p no:cacheprovider
 
 bench: $(STAMP)
 	$(PY) -m bench

@@ -23,6 +23,9 @@ from firmware_bridge import messages as m
 from firmware_bridge.avr_emulator import F_CPU, AvrEmulatorError
 from firmware_bridge.timing import DECISION_STALE_MS, LINK_TIMEOUT_MS
 
+# timings in emulated or real time: their own pass in make test, not beside CPU-heavy tests
+pytestmark = pytest.mark.realtime
+
 ARM = m.CommandFlags.ARM
 # The board's clock is millis(), which on a 16 MHz AVR advances once per 1.024 ms timer overflow
 # and now and then by 2 to catch up: T millis can be as short as T - 1.024 ms of real time, and a

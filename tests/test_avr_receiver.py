@@ -38,6 +38,9 @@ from carrt.interfaces import Mode
 from firmware_bridge import messages as m
 from firmware_bridge.timing import RC_LOSS_MS
 
+# timings in emulated or real time: their own pass in make test, not beside CPU-heavy tests
+pytestmark = pytest.mark.realtime
+
 TRIALS = 12
 PERIOD_MS = 20.0
 # The loss rule counts from the last pulse's end as stamped by the loop() pass that read it (the

@@ -30,6 +30,9 @@ from receiver_rig import (
 
 from carrt.episodes.reader import list_episodes, read_episode
 
+# timings in emulated or real time: their own pass in make test, not beside CPU-heavy tests
+pytestmark = pytest.mark.realtime
+
 
 def drive_through_a_reboot(tmp_path, car, reboot, capsys) -> tuple[list, str]:
     video = write_video(tmp_path / "camera.avi")

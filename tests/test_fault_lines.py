@@ -19,6 +19,9 @@ from carrt.faults import FaultWatch, PartsWatch, measured_faults
 from firmware_bridge import messages as m
 from firmware_bridge.virtual import VirtualBoard
 
+# timings in emulated or real time: their own pass in make test, not beside CPU-heavy tests
+pytestmark = pytest.mark.realtime
+
 
 def watch():
     lines: list[str] = []
