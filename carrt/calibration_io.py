@@ -13,7 +13,6 @@ and says so in a line.
 
 from __future__ import annotations
 
-import errno
 import os
 import stat
 import sys
@@ -26,6 +25,7 @@ from pathlib import Path
 from carrt import config as car_config
 from carrt.episodes.format import fsync_dir
 from carrt.errors import UserError
+from carrt.user_errors import DISK_FULL
 from firmware_bridge import messages as m
 from firmware_bridge.link import BoardLink
 
@@ -33,8 +33,6 @@ if sys.version_info >= (3, 11):
     import tomllib
 else:  # Python 3.10 (JetPack 6)
     import tomli as tomllib
-
-DISK_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
 
 
 def disarm_and_wait(link: BoardLink, timeout_s: float = 1.0) -> None:

@@ -9,7 +9,6 @@ Jetson should not wait for onnxruntime).
 from __future__ import annotations
 
 import argparse
-import errno
 import importlib
 import logging
 import os
@@ -18,12 +17,8 @@ import sys
 
 from carrt import __version__
 from carrt.deps import missing_package_message
-from carrt.errors import EXIT_USAGE, UserError
-from firmware_bridge.avr_emulator import AvrEmulatorError
-from firmware_bridge.link import LinkError
-from firmware_bridge.native import FirmwareBuildError
-
-DISK_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}  # a full disk, quota or file-size limit
+from carrt.errors import EXIT_USAGE
+from carrt.user_errors import USER_ERRORS, one_line
 
 EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE  # what a shell reports for a tool its reader closed
 
@@ -123,14 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     _setup_logging(args)
     try:
         return args.func(args)
-    except (
-        UserError,
-        LinkError,
-        FirmwareBuildError,
-        AvrEmulatorError,
-    ) as exc:  # ContractError is a UserError
-        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        print(f"carrt {args.command}: error: {message}", file=sys.stderr)
+    except USER_ERRORS as exc:
+        print(f"carrt {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return EXIT_USAGE
     except ModuleNotFoundError as exc:
         message = missing_package_message(exc)
@@ -147,11 +136,10 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
     except OSError as exc:
-        if exc.errno not in DISK_FULL:
+        message = one_line(exc)  # a full disk: one line; any other OSError is a bug
+        if message is None:
             raise
-        # any writer of any command (a report, a video, the simulator's run files): one line
-        where = f" ({exc.filename})" if exc.filename else ""
-        print(f"carrt {args.command}: error: disk full: {exc.strerror}{where}", file=sys.stderr)
+        print(f"carrt {args.command}: error: {message}", file=sys.stderr)
         return EXIT_USAGE
 
 

@@ -29,9 +29,8 @@ from carrt import config as car_config
 from carrt.disk_space import check_room
 from carrt.errors import UserError
 from carrt.progress import recording_bar
-from firmware_bridge.avr_emulator import AvrEmulatorError
+from carrt.user_errors import USER_ERRORS
 from firmware_bridge.link import BoardLink, LinkError
-from firmware_bridge.native import FirmwareBuildError
 
 if TYPE_CHECKING:
     from carrt.loop_summary import LoopSummary
@@ -40,7 +39,7 @@ LOG = logging.getLogger(__name__)
 
 # What a drive raises for something the user can fix (the CLI's one line and exit 2; a worker
 # of carrt-sim-data writes the same line into the placement's log)
-DRIVE_ERRORS = (UserError, LinkError, FirmwareBuildError, AvrEmulatorError)
+DRIVE_ERRORS = USER_ERRORS
 
 
 @dataclass(frozen=True)

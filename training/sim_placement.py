@@ -18,6 +18,7 @@ from pathlib import Path
 
 from carrt.errors import EXIT_USAGE, UserError
 from carrt.session import DRIVE_ERRORS, DriveConfig, run_session
+from carrt.user_errors import one_line
 
 
 @dataclass(frozen=True)
@@ -108,16 +109,12 @@ def run_placement(job: Job) -> tuple[Job, int]:
 def _drive(drive: DriveConfig, log) -> int:
     """The drive, its lines and report into `log`, an error the user can fix as the one line
     `carrt teleop|drive` prints for it."""
-    from carrt.cli import DISK_FULL
-
     try:
         return run_session(drive, log=logging.getLogger("carrt.session"), out=log).exit_code
     except (*DRIVE_ERRORS, OSError) as exc:
-        if isinstance(exc, OSError) and not isinstance(exc, DRIVE_ERRORS):
-            if exc.errno not in DISK_FULL:
-                raise
-            exc = f"disk full: {exc.strerror}" + (f" ({exc.filename})" if exc.filename else "")
-        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        message = one_line(exc)
+        if message is None:  # not the user's to fix: a bug, with its traceback
+            raise
         print(f"carrt {drive.command}: error: {message}", file=log)
         return EXIT_USAGE
 
