@@ -93,10 +93,14 @@ def test_pulses_are_within_1us_of_the_commanded_widths(emulator, host):
     # two requests, and the emulator runs on between them (far on a loaded machine: a CI run
     # read 53.9 Hz off two unbracketed reads), so each count is bracketed by clock reads and
     # the count must fit the shortest and the longest interval it can have spanned, give or
-    # take the one pulse under way at each end.
+    # take the one pulse under way at each end. Counted once the host has gone quiet and the
+    # link watchdog has tripped: a stop from ARMED starts the next frame early (pwm_sync), one
+    # short frame that a count across the trip would add (a fresh clone's run counted 53).
     def bracketed_counts() -> tuple[float, tuple[int, int], float]:
         return emulator.now_s(), emulator.pulse_counts(), emulator.now_s()
 
+    wait_emulated(emulator, LINK_TIMEOUT_MS / 1000 + 0.15)
+    assert host.telemetry().state == m.State.FAILSAFE
     start_early, counts_before, start_late = bracketed_counts()
     deadline = time.monotonic() + 20.0
     while emulator.now_s() - start_late < 1.0 and time.monotonic() < deadline:
