@@ -106,6 +106,7 @@ sys.exit(main({argv!r}))
 """
 
 
+@pytest.mark.realtime  # a pad pressed in real time must be seen by the 10 Hz loop
 def test_killed_mid_recording_keeps_earlier_episodes_and_the_current_one(tmp_path):
     video = write_video(tmp_path / "cam.avi")
     out = tmp_path / "episodes"
